@@ -1,0 +1,75 @@
+"""Homogeneous transforms. A 4x4 named ``T_a_b`` maps points in frame b to frame a.
+
+Quaternions are (x, y, z, w), as in ROS and PyBullet.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+
+def make_T(R: np.ndarray | None = None, t=None) -> np.ndarray:
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    if t is not None:
+        T[:3, 3] = np.asarray(t, dtype=float)
+    return T
+
+
+def inv(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform."""
+    Ti = np.eye(4)
+    R = T[:3, :3]
+    Ti[:3, :3] = R.T
+    Ti[:3, 3] = -R.T @ T[:3, 3]
+    return Ti
+
+
+def from_xyz_quat(xyz, quat_xyzw) -> np.ndarray:
+    return make_T(Rotation.from_quat(np.asarray(quat_xyzw, dtype=float)).as_matrix(), xyz)
+
+
+def to_xyz_quat(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return T[:3, 3].copy(), Rotation.from_matrix(T[:3, :3]).as_quat()
+
+
+def from_xyz_rpy(xyz, rpy) -> np.ndarray:
+    return make_T(Rotation.from_euler("xyz", rpy).as_matrix(), xyz)
+
+
+def yaw_of(T: np.ndarray) -> float:
+    return float(np.arctan2(T[1, 0], T[0, 0]))
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply T to (N, 3) points."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def interpolate(T0: np.ndarray, T1: np.ndarray, alpha: float) -> np.ndarray:
+    """SE(3) interpolation: linear in translation, slerp in rotation (alpha may extrapolate a little)."""
+    R0, R1 = Rotation.from_matrix(T0[:3, :3]), Rotation.from_matrix(T1[:3, :3])
+    dR = (R0.inv() * R1).as_rotvec()
+    R = R0 * Rotation.from_rotvec(alpha * dR)
+    return make_T(R.as_matrix(), (1 - alpha) * T0[:3, 3] + alpha * T1[:3, 3])
+
+
+def interpolate_trajectory(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray | float) -> np.ndarray:
+    """Poses (N, 4, 4) at sorted ``stamps`` evaluated at ``t`` (clamped to the ends).
+
+    Returns (4, 4) for a scalar t, else (M, 4, 4).
+    """
+    stamps = np.asarray(stamps, dtype=float)
+    scalar = np.ndim(t) == 0
+    tq = np.clip(np.atleast_1d(np.asarray(t, dtype=float)), stamps[0], stamps[-1])
+    if len(stamps) == 1:
+        out = np.repeat(poses[:1], len(tq), axis=0)
+        return out[0] if scalar else out
+    rots = Rotation.from_matrix(poses[:, :3, :3])
+    slerp = Slerp(stamps, rots)
+    out = np.tile(np.eye(4), (len(tq), 1, 1))
+    out[:, :3, :3] = slerp(tq).as_matrix()
+    for k in range(3):
+        out[:, k, 3] = np.interp(tq, stamps, poses[:, k, 3])
+    return out[0] if scalar else out
