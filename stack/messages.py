@@ -86,6 +86,7 @@ class CameraFrame:
     rgb: np.ndarray | None = None  # (H, W, 3) uint8
     depth_m: np.ndarray | None = None  # (H, W) float32 metres, 0 = no return
     T_world_camera: np.ndarray | None = None  # ground truth (camera optical frame in world)
+    extra: dict = field(default_factory=dict)  # source-specific extras (the sim puts its segmentation here)
 
 
 @dataclass

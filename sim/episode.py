@@ -1,0 +1,230 @@
+"""A scripted drive-through: the Jackal follows the scenario's route through the physics, and the
+sensors produce timestamped frames in time order, each with its ground truth.
+
+One seed drives everything random here: physics is deterministic, and the sensor-noise and
+wheel-odometry streams are children of ``np.random.SeedSequence(seed)``.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import cv2
+import numpy as np
+import pybullet as p
+
+from sim.camera import default_camera_info, new_client, render_rgbd
+from sim.lidar import BeamPattern, BoxRayCaster
+from sim.objects import cuboid_keypoints
+from sim.robot import Jackal
+from sim.scenario import Scenario, load_scenario
+from sim.world import build_world
+from stack.messages import CameraFrame, LidarScan, WheelOdometry
+from stack.transforms import interpolate_trajectory, inv, transform_points, yaw_of
+
+log = logging.getLogger(__name__)
+
+
+class RouteFollower:
+    """Drives to each waypoint in turn (heading control, slowing for turns), with the route's pauses."""
+
+    def __init__(self, sc: Scenario):
+        self.route = sc.route
+        self.idx = 0
+        self.pause_until = sc.route.start_pause
+        self.pauses = {int(i): s for i, s in sc.route.pauses}
+        self.done = False
+        self.closest = np.full(len(self.route.waypoints), np.inf)  # how near the robot came to each waypoint
+
+    def __call__(self, t: float, T_world_base: np.ndarray) -> tuple[float, float]:
+        x, y = T_world_base[0, 3], T_world_base[1, 3]
+        for i, w in enumerate(self.route.waypoints):
+            self.closest[i] = min(self.closest[i], math.hypot(w[0] - x, w[1] - y))
+        if self.done or t < self.pause_until:
+            return 0.0, 0.0
+        wp = self.route.waypoints[self.idx]
+        d = math.hypot(wp[0] - x, wp[1] - y)
+        if d < self.route.tolerance:
+            self.pause_until = t + self.pauses.get(self.idx, 0.0)
+            self.idx += 1
+            if self.idx == len(self.route.waypoints):
+                self.done = True
+            if self.done:
+                return 0.0, 0.0
+            return self(t, T_world_base)
+        speed = wp[2] if len(wp) == 3 else self.route.speed
+        err = (math.atan2(wp[1] - y, wp[0] - x) - yaw_of(T_world_base) + math.pi) % (2 * math.pi) - math.pi
+        w = float(np.clip(3.0 * err, -1.5, 1.5))
+        v = speed * max(0.0, math.cos(err)) ** 4
+        if d < 0.4 and abs(err) > 0.4:
+            v = 0.0
+        if self.idx == len(self.route.waypoints) - 1 or self.pauses.get(self.idx, 0) > 0:
+            v = min(v, 0.6 * d + 0.03)  # arrive gently where the robot stops
+        return v, w
+
+
+@dataclass
+class GroundTruth:
+    base_stamps: list = field(default_factory=list)
+    base_poses: list = field(default_factory=list)
+
+    @property
+    def T_world_base(self) -> np.ndarray:
+        return np.asarray(self.base_poses)
+
+    @property
+    def stamps(self) -> np.ndarray:
+        return np.asarray(self.base_stamps)
+
+
+class Episode:
+    """A scenario running in its own PyBullet client. Iterate ``frames()`` once."""
+
+    def __init__(self, scenario: Scenario | str | None = None, seed: int | None = None,
+                 duration: float | None = None, light: float | None = None, renderer: str = "auto",
+                 camera: bool | None = None, lidar: bool | None = None):
+        self.sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+        self.seed = self.sc.seed if seed is None else int(seed)
+        self.duration = self.sc.duration if duration is None else float(duration)
+        self.light = self.sc.light if light is None else float(light)
+        s = self.sc.sensors
+        self.use_camera = s.camera if camera is None else camera
+        self.use_lidar = s.lidar if lidar is None else lidar
+        ss = np.random.SeedSequence(self.seed)
+        self.rng_lidar, self.rng_camera, self.rng_odom = (np.random.default_rng(c) for c in ss.spawn(3))
+        self.client, self.renderer = new_client(renderer)
+        p.setGravity(0, 0, -9.81, physicsClientId=self.client)
+        self.dt = 1.0 / self.sc.physics_hz
+        p.setTimeStep(self.dt, physicsClientId=self.client)
+        self.world = build_world(self.client, self.sc)
+        x, y, yaw_deg = self.sc.robot.start
+        self.robot = Jackal(self.client, (x, y, math.radians(yaw_deg)), self.rng_odom)
+        self.caster = BoxRayCaster(self.world.boxes)
+        self.beams = BeamPattern.from_hardware(s.lidar_azimuth_steps, s.lidar_rate)
+        self.camera_info = default_camera_info(s.camera_width, s.camera_height)
+        self.follower = RouteFollower(self.sc)
+        self.groundtruth = GroundTruth()
+        self.T_world_map: np.ndarray | None = None
+        self.wall_seconds = 0.0
+        # settle the robot on its wheels before time starts
+        for _ in range(int(0.5 / self.dt)):
+            p.stepSimulation(physicsClientId=self.client)
+        self._T_base_velodyne = self.robot.T_base_velodyne
+        self._T_base_camera = self.robot.T_base_camera
+
+    # --- public facts ---------------------------------------------------------------------------
+    @property
+    def T_base_velodyne(self) -> np.ndarray:
+        return self._T_base_velodyne.copy()
+
+    @property
+    def T_base_camera(self) -> np.ndarray:
+        return self._T_base_camera.copy()
+
+    @property
+    def objects(self):
+        return self.world.objects
+
+    def T_world_base_at(self, t: float) -> np.ndarray:
+        return interpolate_trajectory(self.groundtruth.stamps, self.groundtruth.T_world_base, t)
+
+    def close(self) -> None:
+        if self.client is not None:
+            p.disconnect(self.client)
+            self.client = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # --- the loop ---------------------------------------------------------------------------------
+    def frames(self) -> Iterator[LidarScan | CameraFrame | WheelOdometry]:
+        import time
+
+        s = self.sc.sensors
+        steps = int(round(self.duration / self.dt))
+        cam_every = max(1, int(round(1.0 / (s.camera_rate * self.dt))))
+        odo_every = max(1, int(round(1.0 / (s.wheel_odometry_rate * self.dt))))
+        sweep_steps = max(1, int(round(self.beams.period / self.dt)))
+        dirs = self.beams.directions()
+        col_t = self.beams.column_times()
+        az = self.beams.azimuths()
+        wall0 = time.perf_counter()
+        for k in range(steps + 1):
+            t = k * self.dt
+            T_world_base = self.robot.T_world_base()
+            self.groundtruth.base_stamps.append(t)
+            self.groundtruth.base_poses.append(T_world_base)
+            if k > 0:
+                self.robot.update_odometry(self.dt)
+            if k % odo_every == 0:
+                yield WheelOdometry(t, self.robot.T_odom_base.copy(), self.robot.odo_v, self.robot.odo_w)
+            if self.use_lidar and k >= sweep_steps and k % sweep_steps == 0:
+                scan = self._lidar_scan(t - self.beams.period, dirs, col_t, az)
+                if self.T_world_map is None:
+                    self.T_world_map = self.T_world_base_at(scan.stamp)
+                yield scan
+            if self.use_camera and k % cam_every == 0:
+                yield self._camera_frame(t, T_world_base)
+            if k == steps:
+                break
+            v, w = self.follower(t, T_world_base)
+            self.robot.command(v, w, self.dt)
+            p.stepSimulation(physicsClientId=self.client)
+        self.wall_seconds = time.perf_counter() - wall0
+        self.sim_seconds = steps * self.dt
+
+    def _lidar_scan(self, stamp: float, dirs, col_t, az) -> LidarScan:
+        gt = self.groundtruth
+        n = int(round(self.beams.period / self.dt)) + 2
+        T_wb = interpolate_trajectory(np.asarray(gt.base_stamps[-n:]), np.asarray(gt.base_poses[-n:]), stamp + col_t)
+        T_ws = T_wb @ self._T_base_velodyne  # (A, 4, 4) sensor pose at each column's firing time
+        R = T_ws[:, :3, :3]
+        dirs_world = np.einsum("aij,arj->ari", R, dirs)
+        origins = np.broadcast_to(T_ws[:, None, :3, 3], dirs_world.shape)
+        az_world = az + np.arctan2(R[:, 1, 0], R[:, 0, 0])
+        ranges, hit = self.caster.cast(origins, dirs_world, az_world, self.beams.range_max)
+        if self.sc.sensors.noise:
+            ranges = ranges + self.rng_lidar.standard_normal(ranges.shape) * self.beams.range_noise
+        ok = np.isfinite(ranges) & (ranges >= self.beams.range_min) & (ranges <= self.beams.range_max)
+        A, Rr = ranges.shape
+        points = (dirs * ranges[..., None])[ok]
+        ring = np.broadcast_to(np.arange(Rr, dtype=np.uint16)[None, :], (A, Rr))[ok]
+        times = np.broadcast_to(col_t[:, None], (A, Rr))[ok]
+        refl = self.caster.refl[np.maximum(hit, 0)]
+        intensity = (100.0 * refl)[ok].astype(np.float32)  # reflectivity of the surface hit
+        return LidarScan(stamp, points.astype(np.float32), times.astype(np.float64), ring.copy(), intensity,
+                         "velodyne", T_ws[0].copy())
+
+    def _camera_frame(self, t: float, T_world_base: np.ndarray) -> CameraFrame:
+        T_world_cam = T_world_base @ self._T_base_camera
+        rgb, depth, seg = render_rgbd(self.client, T_world_cam, self.camera_info, self.light, self.rng_camera,
+                                      self.sc.sensors.noise, self.renderer)
+        return CameraFrame(t, self.camera_info, rgb, depth, T_world_cam, {"segmentation": seg})
+
+    # --- per-image ground truth ---------------------------------------------------------------------
+    def image_truth(self, frame: CameraFrame) -> list[dict]:
+        """Per object: projected key points (DOPE order), whether in front, and the visible fraction."""
+        info = frame.info
+        seg = frame.extra.get("segmentation")
+        out = []
+        for obj in self.world.objects:
+            T_cam_obj = inv(frame.T_world_camera) @ obj.T_world_obj
+            kp = transform_points(T_cam_obj, cuboid_keypoints(obj.dims))
+            in_front = bool(np.all(kp[:, 2] > 0.05))
+            uv = np.full((9, 2), np.nan)
+            visible = 0.0
+            if in_front:
+                uv = np.column_stack([info.fx * kp[:, 0] / kp[:, 2] + info.cx, info.fy * kp[:, 1] / kp[:, 2] + info.cy])
+                hull = cv2.convexHull(uv[:8].astype(np.float32))
+                area = float(cv2.contourArea(hull))
+                if seg is not None and area > 1:
+                    px = int(np.count_nonzero((seg & ((1 << 24) - 1)) == self.world.object_bodies[obj.name]))
+                    visible = float(min(1.0, px / area))
+            out.append({"name": obj.name, "cls": obj.cls, "T_cam_obj": T_cam_obj, "keypoints_px": uv,
+                        "in_front": in_front, "visible_fraction": visible, "distance_m": float(np.linalg.norm(T_cam_obj[:3, 3]))})
+        return out

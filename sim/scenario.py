@@ -1,0 +1,220 @@
+"""Scenario files: TOML, validated. Every error names the file, the field and what was expected.
+
+A scenario declares the room and its furniture, the objects (class, position, yaw, height / stand),
+the robot's start pose, the route (waypoints, speeds, pauses), the light level, sensor settings and
+the seed. ``extends = "other.toml"`` (a file in the same folder) takes another scenario as the base
+and overrides its tables key by key; lists (furniture, objects) are replaced whole.
+"""
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+SCENES_DIR = Path(__file__).parent / "scenes"
+DEFAULT_SCENARIO = "experiment3_columns"
+
+Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Color = Annotated[list[Annotated[int, Field(ge=0, le=255)]], Field(min_length=3, max_length=3)]
+
+
+class ScenarioError(ValueError):
+    """A scenario file that cannot be used; the message names file, field and expectation."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Room(_Strict):
+    size: Vec2 = Field(description="inner size x, y in metres; the room is centred on the world origin")
+    wall_height: float = Field(2.6, gt=0.5, le=20)
+    wall_thickness: float = Field(0.15, gt=0.01, le=2)
+    ceiling: bool = True
+    wall_color: Color = [200, 196, 185]
+    floor_color: Color = [120, 110, 100]
+
+    @field_validator("size")
+    @classmethod
+    def _positive(cls, v):
+        if min(v) <= 1.0 or max(v) > 200:
+            raise ValueError("expected two sizes between 1 and 200 m")
+        return v
+
+
+class Furniture(_Strict):
+    name: str = ""
+    kind: Literal["box", "pillar", "shelf", "table", "stand"] = "box"
+    position: Vec2 = Field(description="centre on the floor, x y in metres")
+    size: Vec3 = Field(description="x y z extent in metres")
+    yaw_deg: float = 0.0
+    color: Color = [150, 150, 150]
+
+    @field_validator("size")
+    @classmethod
+    def _size(cls, v):
+        if min(v) <= 0:
+            raise ValueError("expected three positive sizes in metres")
+        return v
+
+
+class SceneObject(_Strict):
+    cls: str = Field(alias="class")
+    name: str = ""
+    position: Vec2 = Field(description="x y of the object's bottom centre in metres")
+    height: float = Field(0.0, ge=0.0, le=3.0, description="height of the surface it stands on (m)")
+    yaw_deg: float = Field(0.0, description="direction its front face looks, degrees in world")
+    stand: bool = Field(True, description="put a stand under it when height > 0")
+
+
+class Robot(_Strict):
+    start: Vec3 = Field(description="x, y (m) and yaw (deg) of base_link in world")
+
+
+class Route(_Strict):
+    waypoints: list[Annotated[list[float], Field(min_length=2, max_length=3)]] = Field(
+        min_length=1, description="[x, y] or [x, y, speed m/s]")
+    speed: float = Field(0.3, gt=0.0, le=2.0)
+    start_pause: float = Field(0.0, ge=0.0, description="seconds standing still before driving")
+    pauses: list[Vec2] = Field(default_factory=list, description="[waypoint index, seconds]")
+    tolerance: float = Field(0.05, gt=0.0, le=1.0, description="a waypoint is reached within this distance")
+
+    @field_validator("waypoints")
+    @classmethod
+    def _speeds(cls, v):
+        for w in v:
+            if len(w) == 3 and not 0 < w[2] <= 2.0:
+                raise ValueError("a waypoint speed must be in (0, 2.0] m/s (the Jackal's maximum)")
+        return v
+
+
+class Sensors(_Strict):
+    camera: bool = True
+    camera_rate: float = Field(10.0, gt=0.0, le=60.0)
+    camera_width: int = Field(640, ge=32, le=1920)
+    camera_height: int = Field(480, ge=24, le=1080)
+    lidar: bool = True
+    lidar_rate: float = Field(10.0, ge=1.0, le=30.0)
+    lidar_azimuth_steps: int = Field(1808, ge=16, le=8192)
+    wheel_odometry_rate: float = Field(20.0, gt=0.0, le=200.0)
+    noise: bool = True
+
+
+class Scenario(_Strict):
+    name: str
+    description: str = ""
+    seed: int = Field(0, ge=0)
+    duration: float = Field(60.0, gt=0.0, le=3600.0)
+    light: float = Field(1.0, ge=0.0, le=1.0, description="1 = lit, 0 = complete darkness")
+    physics_hz: float = Field(240.0, ge=60.0, le=1000.0)
+    room: Room
+    furniture: list[Furniture] = Field(default_factory=list)
+    objects: list[SceneObject] = Field(default_factory=list)
+    robot: Robot
+    route: Route
+    sensors: Sensors = Field(default_factory=Sensors)
+    extends: str | None = None
+    source: str = Field("", exclude=True)
+
+    @model_validator(mode="after")
+    def _inside_room(self):
+        hx, hy = self.room.size[0] / 2, self.room.size[1] / 2
+        def inside(xy):
+            return abs(xy[0]) < hx and abs(xy[1]) < hy
+        for i, o in enumerate(self.objects):
+            if not inside(o.position):
+                raise ValueError(f"objects.{i}.position {o.position} is outside the room (|x| < {hx}, |y| < {hy})")
+        for i, f in enumerate(self.furniture):
+            if not inside(f.position):
+                raise ValueError(f"furniture.{i}.position {f.position} is outside the room (|x| < {hx}, |y| < {hy})")
+        if not inside(self.robot.start[:2]):
+            raise ValueError(f"robot.start {self.robot.start[:2]} is outside the room (|x| < {hx}, |y| < {hy})")
+        for i, w in enumerate(self.route.waypoints):
+            if not inside(w[:2]):
+                raise ValueError(f"route.waypoints.{i} {w[:2]} is outside the room (|x| < {hx}, |y| < {hy})")
+        for i, (idx, secs) in enumerate(self.route.pauses):
+            if not (0 <= idx < len(self.route.waypoints)) or int(idx) != idx or secs < 0:
+                raise ValueError(f"route.pauses.{i}: expected [waypoint index 0..{len(self.route.waypoints) - 1}, seconds >= 0]")
+        return self
+
+    @property
+    def object_names(self) -> list[str]:
+        return [o.name for o in self.objects]
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _read_toml(path: Path, depth: int = 0) -> dict:
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except FileNotFoundError:
+        raise ScenarioError(f"{path}: file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{path}: not valid TOML: {exc}") from None
+    parent = data.get("extends")
+    if parent is not None:
+        if depth > 4:
+            raise ScenarioError(f"{path}: field 'extends': chain longer than 5 files")
+        if not isinstance(parent, str):
+            raise ScenarioError(f"{path}: field 'extends': expected a file name in the same folder")
+        base_path = (path.parent / parent).resolve()
+        if base_path.parent != path.parent.resolve():
+            raise ScenarioError(f"{path}: field 'extends': expected a file in the same folder, got {parent!r}")
+        data = _merge(_read_toml(base_path, depth + 1), data)
+    return data
+
+
+def resolve_path(name_or_path: str | Path | None) -> Path:
+    """A bundled scenario's name, or a path to a TOML file."""
+    if name_or_path is None:
+        name_or_path = DEFAULT_SCENARIO
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        return p
+    bundled = SCENES_DIR / f"{name_or_path}.toml"
+    if bundled.exists():
+        return bundled
+    raise ScenarioError(f"{name_or_path}: no such scenario file, and no bundled scenario of that name "
+                        f"(bundled: {', '.join(bundled_scenarios())})")
+
+
+def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
+    from sim.objects import load_catalog
+
+    path = resolve_path(name_or_path)
+    data = _read_toml(path)
+    try:
+        sc = Scenario.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(x) for x in err["loc"]) or "(top level)"
+        got = f" (got {err['input']!r})" if "input" in err and not isinstance(err["input"], dict) else ""
+        raise ScenarioError(f"{path}: field '{loc}': {err['msg']}{got}") from None
+    catalog = load_catalog()
+    for i, o in enumerate(sc.objects):
+        if o.cls not in catalog:
+            raise ScenarioError(f"{path}: field 'objects.{i}.class': expected one of {sorted(catalog)}, got {o.cls!r}")
+        if not o.name:
+            o.name = o.cls if sum(x.cls == o.cls for x in sc.objects) == 1 else f"{o.cls}_{i}"
+    names = [o.name for o in sc.objects]
+    if len(set(names)) != len(names):
+        raise ScenarioError(f"{path}: field 'objects': object names must be unique, got {names}")
+    sc.source = str(path)
+    return sc
+
+
+def bundled_scenarios() -> list[str]:
+    return sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+
+
+def default_scenario_path() -> Path:
+    return SCENES_DIR / f"{DEFAULT_SCENARIO}.toml"
