@@ -1,0 +1,499 @@
+"""Persistent object store: one entry per physical object in the map (paper section 3.6).
+
+A map-frame observation of an object is associated with the nearest stored object of the
+same class within a gate, or starts a new object with the next unique integer ID. The
+object's label (pose) is recomputed from its observation history by a labelling policy;
+policies are plain functions of a list of observations, so they work offline too.
+
+The store is saved as ``.xlsx`` (one row per object, editable by hand, as in the paper)
+or ``.json`` (the same plus each object's observation history). Saves are atomic. Rows
+marked ``edited`` in the file being replaced are kept unless ``overwrite=True``. A file
+that does not parse raises ObjectStoreError naming the file, row and column; loading
+never writes.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import zipfile
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import openpyxl
+import pandas as pd
+from openpyxl.utils.exceptions import InvalidFileException
+from scipy.spatial.transform import Rotation
+
+from stack.messages import Detection
+from stack.transforms import from_xyz_quat, to_xyz_quat
+
+COLUMNS = ["id", "class", "x", "y", "z", "qx", "qy", "qz", "qw", "size_x", "size_y", "size_z",
+           "first_seen", "last_seen", "observations", "score", "edited"]
+SHEET = "objects"
+JSON_FORMAT = "dopeslam-object-store"
+QUAT_NORM_TOLERANCE = 0.01  # hand-typed quaternions (0.707, 0, 0, 0.707) are accepted and normalised
+
+
+class ObjectStoreError(ValueError):
+    """A store file that cannot be read: says which file, row and column, and what was expected.
+
+    ``row`` is the spreadsheet row number (header = 1) for .xlsx, the index in ``objects``
+    for .json, None when the whole file is at fault.
+    """
+
+    def __init__(self, path, row: int | None, column: str | None, message: str):
+        self.path, self.row, self.column = Path(path), row, column
+        xlsx = self.path.suffix.lower() == ".xlsx"
+        where = [str(self.path)]
+        if row is not None:
+            where.append(f"row {row}" if xlsx else f"objects[{row}]")
+        if column is not None:
+            where.append(f"{'column' if xlsx else 'field'} '{column}'")
+        super().__init__(f"{', '.join(where)}: {message}")
+
+
+@dataclass
+class Observation:
+    """One detection of an object, already carried into the map frame."""
+
+    stamp: float
+    cls: str
+    xyz: np.ndarray  # (3,) map frame, metres
+    quat_xyzw: np.ndarray  # (4,) orientation of the object frame in the map
+    belief_sum: float = math.nan  # FPR's quantity: lower = more certain
+    fpr_pass: bool = True
+    range_m: float = math.nan  # camera-to-object distance when seen
+
+    @staticmethod
+    def from_detection(det: Detection, T_map_obj: np.ndarray) -> "Observation":
+        xyz, quat = to_xyz_quat(T_map_obj)
+        return Observation(det.stamp, det.cls, xyz, quat, float(det.belief_sum), bool(det.fpr_pass),
+                           float(np.linalg.norm(det.T_cam_obj[:3, 3])))
+
+    def to_dict(self) -> dict:
+        return {"stamp": self.stamp, "cls": self.cls, "xyz": [float(v) for v in self.xyz],
+                "quat_xyzw": [float(v) for v in self.quat_xyzw], "belief_sum": _nan_to_none(self.belief_sum),
+                "fpr_pass": self.fpr_pass, "range_m": _nan_to_none(self.range_m)}
+
+    @staticmethod
+    def from_dict(d: Mapping) -> "Observation":
+        xyz, quat = np.asarray(d["xyz"], dtype=float), np.asarray(d["quat_xyzw"], dtype=float)
+        if xyz.shape != (3,) or quat.shape != (4,):
+            raise ValueError("expected xyz of 3 and quat_xyzw of 4 numbers")
+        return Observation(float(d["stamp"]), str(d["cls"]), xyz, quat, _none_to_nan(d.get("belief_sum")),
+                           bool(d.get("fpr_pass", True)), _none_to_nan(d.get("range_m")))
+
+
+# --- Labelling policies: observations (time order) -> label, or None when none qualifies ---------
+
+@dataclass
+class Label:
+    xyz: np.ndarray
+    quat_xyzw: np.ndarray
+    score: float  # belief sum of what the label rests on (lower = more certain)
+
+
+Policy = Callable[[Sequence[Observation]], "Label | None"]
+POLICIES: dict[str, Policy] = {}
+
+
+def register(name: str):
+    def add(fn: Policy) -> Policy:
+        POLICIES[name] = fn
+        return fn
+    return add
+
+
+def get_policy(name: str) -> Policy:
+    if name not in POLICIES:
+        raise KeyError(f"unknown labelling policy {name!r}; expected one of {sorted(POLICIES)}")
+    return POLICIES[name]
+
+
+def label_of(observations: Sequence[Observation], policy: str = "robust-mean") -> Label | None:
+    return get_policy(policy)(observations)
+
+
+def _label(o: Observation) -> Label:
+    return Label(np.array(o.xyz, dtype=float), np.array(o.quat_xyzw, dtype=float), o.belief_sum)
+
+
+def _latest(obs: Sequence[Observation]) -> Observation | None:
+    return max(reversed(obs), key=lambda o: o.stamp) if obs else None  # ties: the later in the list
+
+
+def _passing(obs: Sequence[Observation]) -> list[Observation]:
+    return [o for o in obs if o.fpr_pass]
+
+
+@register("last")
+def last(obs: Sequence[Observation]) -> Label | None:
+    """The paper's: the last detection is the label, even if FPR rejected it."""
+    o = _latest(obs)
+    return None if o is None else _label(o)
+
+
+@register("last-fpr")
+def last_fpr(obs: Sequence[Observation]) -> Label | None:
+    """The last detection that passed FPR (the paper's with FPR filtering what reaches the map)."""
+    o = _latest(_passing(obs))
+    return None if o is None else _label(o)
+
+
+@register("best-score")
+def best_score(obs: Sequence[Observation]) -> Label | None:
+    """The FPR-passing detection with the lowest belief sum (the most certain one)."""
+    ok = _passing(obs)
+    if not ok:
+        return None
+    return _label(min(ok, key=lambda o: o.belief_sum if not math.isnan(o.belief_sum) else math.inf))
+
+
+@register("closest-fpr")
+def closest_fpr(obs: Sequence[Observation]) -> Label | None:
+    """The FPR-passing detection taken nearest the camera (PnP depth error grows with range)."""
+    ok = _passing(obs)
+    if not ok:
+        return None
+    return _label(min(ok, key=lambda o: o.range_m if not math.isnan(o.range_m) else math.inf))
+
+
+@register("robust-mean")
+def robust_mean(obs: Sequence[Observation], k: float = 3.0, floor_m: float = 0.02) -> Label | None:
+    """Mean of the FPR-passing detections left after rejecting outliers around their median.
+
+    A detection is an outlier when it is further from the coordinate-wise median than
+    k robust sigmas (1.4826 x the median distance), and never within ``floor_m``.
+    """
+    ok = _passing(obs)
+    if not ok:
+        return None
+    P = np.array([o.xyz for o in ok], dtype=float)
+    r = np.linalg.norm(P - np.median(P, axis=0), axis=1)
+    inlier = r <= max(k * 1.4826 * np.median(r), floor_m)
+    quat = Rotation.from_quat(np.array([o.quat_xyzw for o in ok])[inlier]).mean().as_quat()
+    beliefs = np.array([o.belief_sum for o in ok])[inlier]
+    score = float(np.mean(beliefs[~np.isnan(beliefs)])) if np.any(~np.isnan(beliefs)) else math.nan
+    return Label(P[inlier].mean(axis=0), quat, score)
+
+
+# --- The store ------------------------------------------------------------------------------------
+
+@dataclass
+class MapObject:
+    id: int
+    cls: str
+    xyz: np.ndarray  # label position (cuboid centroid), map frame
+    quat_xyzw: np.ndarray
+    size: np.ndarray  # cuboid x y z, metres
+    first_seen: float
+    last_seen: float
+    observations: int = 0
+    score: float = math.nan
+    edited: bool = False  # set by a person: the stack no longer moves it and saves keep it
+    history: list[Observation] = field(default_factory=list)
+
+    @property
+    def T_map_obj(self) -> np.ndarray:
+        return from_xyz_quat(self.xyz, self.quat_xyzw)
+
+    def row(self) -> dict:
+        (x, y, z), (qx, qy, qz, qw), (sx, sy, sz) = self.xyz, self.quat_xyzw, self.size
+        values = [self.id, self.cls, x, y, z, qx, qy, qz, qw, sx, sy, sz,
+                  self.first_seen, self.last_seen, self.observations, self.score, self.edited]
+        return {c: (v.item() if isinstance(v, np.generic) else v) for c, v in zip(COLUMNS, values)}
+
+
+class ObjectStore:
+    """Objects by ID; ``add`` associates an observation and relabels the object.
+
+    ``dims``: cuboid size per class (also the set of known classes). ``gate_m``: the
+    furthest an observation may be from an object's label to be that object
+    (math.inf = one object per class, as in the paper's one-object runs).
+    """
+
+    def __init__(self, dims: Mapping[str, Sequence[float]] | None = None, gate_m: float = 0.5,
+                 policy: str = "robust-mean"):
+        get_policy(policy)
+        self.dims = {c: np.asarray(v, dtype=float) for c, v in (dims or {}).items()}
+        self.gate_m = float(gate_m)
+        self.policy = policy
+        self.objects: dict[int, MapObject] = {}
+
+    def __len__(self) -> int:
+        return len(self.objects)
+
+    def __iter__(self):
+        return iter(sorted(self.objects.values(), key=lambda o: o.id))
+
+    def next_id(self) -> int:
+        return max(self.objects, default=0) + 1
+
+    def associate(self, cls: str, xyz, exclude_edited: bool = False) -> MapObject | None:
+        """The nearest object of class ``cls`` within the gate, or None."""
+        best, best_d = None, self.gate_m
+        for obj in self.objects.values():
+            if obj.cls != cls or (exclude_edited and obj.edited):
+                continue
+            d = float(np.linalg.norm(np.asarray(xyz, dtype=float) - obj.xyz))
+            if d <= best_d:
+                best, best_d = obj, d
+        return best
+
+    def add(self, obs: Observation) -> MapObject | None:
+        """Record an observation; returns its object, or None when it labels nothing new.
+
+        An observation that matches no object starts one only if the policy would label it
+        on its own (an FPR-rejected detection does not create an object under `last-fpr`).
+        """
+        obj = self.associate(obs.cls, obs.xyz)
+        if obj is None:
+            if label_of([obs], self.policy) is None:
+                return None
+            if obs.cls not in self.dims:
+                raise ValueError(f"no cuboid size for class {obs.cls!r}; the store knows {sorted(self.dims)}")
+            obj = MapObject(self.next_id(), obs.cls, np.array(obs.xyz, dtype=float),
+                            np.array(obs.quat_xyzw, dtype=float), self.dims[obs.cls].copy(), obs.stamp, obs.stamp)
+            self.objects[obj.id] = obj
+        obj.history.append(obs)
+        obj.observations += 1
+        obj.first_seen, obj.last_seen = min(obj.first_seen, obs.stamp), max(obj.last_seen, obs.stamp)
+        if not obj.edited:
+            label = label_of(obj.history, self.policy)
+            if label is not None:
+                obj.xyz, obj.quat_xyzw, obj.score = label.xyz, label.quat_xyzw, label.score
+        return obj
+
+    # --- persistence ---
+
+    def save(self, path, overwrite: bool = False) -> None:
+        """Write the store to ``path`` (.xlsx or .json), atomically.
+
+        Unless ``overwrite``, rows marked edited in the file being replaced are kept as
+        they are, and the store adopts them first (see ``keep_edited``); a replaced file
+        that does not parse raises ObjectStoreError and is left as it is.
+        """
+        path = Path(path)
+        writer = _writer(path)
+        if path.exists() and not overwrite:
+            self.keep_edited(read_objects(path, classes=set(self.dims) or None))
+        writer(path, list(self))
+
+    def keep_edited(self, objects: Sequence[MapObject]) -> None:
+        """Take hand-edited objects in as they are, replacing what the store has for them.
+
+        An edited object replaces the stored object with its ID and class, or else the nearest
+        unedited stored object of its class within the gate (the same object under another ID).
+        A different stored object holding its ID is given a new ID.
+        """
+        for e in (o for o in objects if o.edited):
+            same = self.objects.get(e.id)
+            if same is None or same.cls != e.cls:
+                same = self.associate(e.cls, e.xyz, exclude_edited=True)
+            if same is not None:
+                del self.objects[same.id]
+                e.history = e.history or same.history
+            if e.id in self.objects:
+                other = self.objects.pop(e.id)
+                other.id = max(self.next_id(), e.id + 1)
+                self.objects[other.id] = other
+            self.objects[e.id] = e
+
+    @classmethod
+    def load(cls, path, dims: Mapping[str, Sequence[float]] | None = None, gate_m: float = 0.5,
+             policy: str = "robust-mean") -> "ObjectStore":
+        store = cls(dims, gate_m, policy)
+        for obj in read_objects(path, classes=set(store.dims) or None):
+            store.objects[obj.id] = obj
+        return store
+
+
+# --- Files ----------------------------------------------------------------------------------------
+
+def read_objects(path, classes: set[str] | None = None) -> list[MapObject]:
+    """Objects from a .xlsx or .json store file; ObjectStoreError if anything is malformed."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".xlsx":
+        return _read_xlsx(path, classes)
+    if suffix == ".json":
+        return _read_json(path, classes)
+    raise ObjectStoreError(path, None, None, f"unknown store format {suffix!r}; expected .xlsx or .json")
+
+
+def _writer(path: Path):
+    suffix = path.suffix.lower()
+    if suffix == ".xlsx":
+        return _write_xlsx
+    if suffix == ".json":
+        return _write_json
+    raise ValueError(f"{path}: unknown store format {suffix!r}; expected .xlsx or .json")
+
+
+@contextmanager
+def _atomic(path: Path):
+    """Yield a temporary path beside ``path``; on success it replaces ``path`` in one step."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    os.close(fd)
+    try:
+        os.chmod(tmp, path.stat().st_mode & 0o777 if path.exists() else 0o644)  # mkstemp makes it 0600
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _write_xlsx(path: Path, objects: Sequence[MapObject]) -> None:
+    table = pd.DataFrame([o.row() for o in objects], columns=COLUMNS)
+    with _atomic(path) as tmp, open(tmp, "wb") as f:  # our handle: closed even if pandas fails midway
+        with pd.ExcelWriter(f, engine="openpyxl") as writer:
+            table.to_excel(writer, sheet_name=SHEET, index=False)
+
+
+def _write_json(path: Path, objects: Sequence[MapObject]) -> None:
+    doc = {"format": JSON_FORMAT, "version": 1, "objects": [
+        {**{c: _nan_to_none(v) for c, v in o.row().items()}, "history": [h.to_dict() for h in o.history]}
+        for o in objects]}
+    with _atomic(path) as tmp:
+        Path(tmp).write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+
+
+def _read_xlsx(path: Path, classes: set[str] | None) -> list[MapObject]:
+    try:
+        wb = openpyxl.load_workbook(path, read_only=True, data_only=True)
+    except (OSError, zipfile.BadZipFile, InvalidFileException, KeyError, ValueError) as e:
+        raise ObjectStoreError(path, None, None, f"not a readable .xlsx workbook ({e})") from e
+    try:
+        ws = wb[SHEET] if SHEET in wb.sheetnames else wb.worksheets[0]
+        rows = ws.iter_rows(values_only=True)
+        header = [str(h).strip() if h is not None else "" for h in next(rows, ())]
+        for c in COLUMNS:
+            if c not in header:
+                raise ObjectStoreError(path, 1, c, f"missing column; the header must hold {COLUMNS}")
+            if header.count(c) > 1:
+                raise ObjectStoreError(path, 1, c, "column appears more than once")
+        where = {c: header.index(c) for c in COLUMNS}
+        records = []
+        for number, cells in enumerate(rows, start=2):
+            cells = list(cells) + [None] * (len(header) - len(cells))
+            if all(v is None or (isinstance(v, str) and not v.strip()) for v in cells):
+                continue  # a blank line is no object
+            records.append((number, {c: cells[i] for c, i in where.items()}))
+    finally:
+        wb.close()
+    return _objects_from_records(path, records, classes)
+
+
+def _read_json(path: Path, classes: set[str] | None) -> list[MapObject]:
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ObjectStoreError(path, None, None, f"not readable JSON ({e})") from e
+    if not isinstance(doc, dict) or doc.get("format") != JSON_FORMAT or not isinstance(doc.get("objects"), list):
+        raise ObjectStoreError(path, None, None, f"expected an object {{'format': '{JSON_FORMAT}', 'objects': [...]}}")
+    records = []
+    for i, item in enumerate(doc["objects"]):
+        if not isinstance(item, dict):
+            raise ObjectStoreError(path, i, None, "expected an object with the store's columns")
+        for c in COLUMNS:
+            if c not in item:
+                raise ObjectStoreError(path, i, c, "missing field")
+        records.append((i, item))
+    objects = _objects_from_records(path, records, classes)
+    for (i, item), obj in zip(records, objects):
+        for k, h in enumerate(item.get("history") or []):
+            try:
+                obj.history.append(Observation.from_dict(h))
+            except (KeyError, TypeError, ValueError) as e:
+                raise ObjectStoreError(path, i, f"history[{k}]", f"malformed observation ({e})") from e
+    return objects
+
+
+def _objects_from_records(path: Path, records, classes: set[str] | None) -> list[MapObject]:
+    objects, first_row_of_id = [], {}
+    for row, values in records:
+        obj = _parse_row(path, row, values, classes)
+        if obj.id in first_row_of_id:
+            raise ObjectStoreError(path, row, "id", f"id {obj.id} is used twice (first at row {first_row_of_id[obj.id]})")
+        first_row_of_id[obj.id] = row
+        objects.append(obj)
+    return objects
+
+
+def _parse_row(path: Path, row: int, v: Mapping, classes: set[str] | None) -> MapObject:
+    def number(c: str, allow_empty: bool = False) -> float:
+        x = v[c]
+        if _empty(x):
+            if allow_empty:
+                return math.nan
+            raise ObjectStoreError(path, row, c, "empty cell; expected a number")
+        if isinstance(x, bool):
+            raise ObjectStoreError(path, row, c, f"expected a number, got {x!r}")
+        try:
+            f = float(x)
+        except (TypeError, ValueError):
+            raise ObjectStoreError(path, row, c, f"expected a number, got {x!r}") from None
+        if not math.isfinite(f) and not allow_empty:
+            raise ObjectStoreError(path, row, c, f"expected a finite number, got {x!r}")
+        return f
+
+    def integer(c: str) -> int:
+        f = number(c)
+        if f != int(f) or f < 0:
+            raise ObjectStoreError(path, row, c, f"expected a whole number >= 0, got {v[c]!r}")
+        return int(f)
+
+    cls = v["class"]
+    if not isinstance(cls, str) or not cls.strip():
+        raise ObjectStoreError(path, row, "class", f"expected a class name, got {cls!r}")
+    cls = cls.strip()
+    if classes is not None and cls not in classes:
+        raise ObjectStoreError(path, row, "class", f"unknown class {cls!r}; expected one of {sorted(classes)}")
+
+    quat = np.array([number(c) for c in ("qx", "qy", "qz", "qw")])
+    norm = float(np.linalg.norm(quat))
+    if abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
+        raise ObjectStoreError(path, row, "qx..qw", f"quaternion {quat.tolist()} has norm {norm:.4g}; expected a unit quaternion")
+    size = np.array([number(c) for c in ("size_x", "size_y", "size_z")])
+    for c, s in zip(("size_x", "size_y", "size_z"), size):
+        if s <= 0:
+            raise ObjectStoreError(path, row, c, f"expected a size > 0 m, got {s}")
+    first_seen, last_seen = number("first_seen"), number("last_seen")
+    if last_seen < first_seen:
+        raise ObjectStoreError(path, row, "last_seen", f"last_seen {last_seen} is before first_seen {first_seen}")
+    return MapObject(
+        id=integer("id"), cls=cls, xyz=np.array([number(c) for c in ("x", "y", "z")]), quat_xyzw=quat / norm,
+        size=size, first_seen=first_seen, last_seen=last_seen, observations=integer("observations"),
+        score=number("score", allow_empty=True), edited=_flag(path, row, v["edited"]))
+
+
+def _flag(path: Path, row: int, x) -> bool:
+    if _empty(x):
+        return False
+    if isinstance(x, bool):
+        return x
+    if isinstance(x, (int, float)) and x in (0, 1):
+        return bool(x)
+    if isinstance(x, str) and x.strip().lower() in ("true", "yes", "y", "1", "false", "no", "n", "0"):
+        return x.strip().lower() in ("true", "yes", "y", "1")
+    raise ObjectStoreError(path, row, "edited", f"expected TRUE or FALSE, got {x!r}")
+
+
+def _empty(x) -> bool:
+    return x is None or (isinstance(x, str) and not x.strip()) or (isinstance(x, float) and math.isnan(x))
+
+
+def _nan_to_none(x):
+    return None if isinstance(x, float) and math.isnan(x) else x
+
+
+def _none_to_nan(x) -> float:
+    return math.nan if x is None else float(x)
