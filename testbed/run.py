@@ -1,0 +1,284 @@
+"""``dopeslam run``: the main job. The simulated frames go to the stack in time order, as on a robot:
+LiDAR -> odometry; images -> DOPE -> FPR -> fusion (HTM chain at the image's time) -> object store.
+Then everything is scored against the simulator's ground truth.
+
+Images wait until the odometry has a pose after their timestamp (the next LiDAR sweep), so each is
+fused with an interpolated pose, never an extrapolated one (except at the very end of the episode).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from stack.fusion import fuse
+from stack.lidar_slam import LidarOdometry, WheelOdometryTrack
+from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
+from stack.metrics import ate_rmse, ate_rmse_umeyama, rpe, write_tum
+from stack.object_store import ObjectStore
+from stack.transforms import inv, transform_points
+from testbed.simulate import write_json
+
+log = logging.getLogger(__name__)
+
+FALSE_LABEL_M = 0.25  # a label further than this from its object's truth is a false label
+FALSE_POSITIVE_M = 0.05  # a detection off by more than this in any axis (camera frame) is a false positive (paper)
+INSTANCE_RANGE_M = (0.3, 1.5)  # an object counts as an instance to detect when this near ...
+INSTANCE_VISIBLE = 0.5  # ... and at least this much of it is visible
+
+
+@dataclass
+class DetectionLog:
+    frames: int = 0
+    predictions: int = 0
+    false_positives: int = 0
+    instances: int = 0
+    correct: int = 0
+    seconds: float = 0.0
+    rows: list = field(default_factory=list)  # per detection: stamp, cls, fpr, belief_sum, error
+
+    def summary(self) -> dict:
+        tp = self.predictions
+        return {"frames": self.frames, "predictions": tp, "false_positives": self.false_positives,
+                "instances": self.instances, "correct": self.correct,
+                "precision": (tp - self.false_positives) / tp if tp else None,
+                "recall": self.correct / self.instances if self.instances else None,
+                "fps": self.frames / self.seconds if self.seconds > 0 else None,
+                "false_positive_threshold_m": FALSE_POSITIVE_M,
+                "instance_definition": f"object {INSTANCE_RANGE_M[0]}-{INSTANCE_RANGE_M[1]} m away, "
+                                       f">= {INSTANCE_VISIBLE:.0%} visible"}
+
+
+def score_detections(dlog: DetectionLog, detections: list[Detection], truths: list[dict]) -> list[bool]:
+    """Count predictions, false positives (> 5 cm in any camera axis from the truth of that class)
+    and instances; returns per detection whether it is correct."""
+    correct_flags = []
+    seen_correct = set()
+    for det in detections:
+        cands = [t for t in truths if t["cls"] == det.cls and t["in_front"]]
+        err = min((np.abs(det.T_cam_obj[:3, 3] - t["T_cam_obj"][:3, 3]).max() for t in cands), default=np.inf)
+        ok = bool(err <= FALSE_POSITIVE_M)
+        dlog.rows.append({"stamp": det.stamp, "cls": det.cls, "fpr_pass": det.fpr_pass,
+                          "belief_sum": det.belief_sum, "max_axis_error_m": float(err)})
+        if det.fpr_pass:
+            dlog.predictions += 1
+            if not ok:
+                dlog.false_positives += 1
+            elif det.cls not in seen_correct:
+                seen_correct.add(det.cls)
+        correct_flags.append(ok)
+    for t in truths:
+        if t["in_front"] and INSTANCE_RANGE_M[0] <= t["distance_m"] <= INSTANCE_RANGE_M[1] \
+                and t["visible_fraction"] >= INSTANCE_VISIBLE:
+            dlog.instances += 1
+            if t["cls"] in seen_correct:
+                dlog.correct += 1
+    return correct_flags
+
+
+def score_labels(store: ObjectStore, objects, T_world_map: np.ndarray) -> tuple[list[dict], dict]:
+    """Match each true object to the store's nearest label of its class (in world)."""
+    labels = []
+    used = set()
+    for obj in objects:
+        truth = obj.T_world_obj[:3, 3]
+        best, best_d = None, np.inf
+        for m in store:
+            if m.cls != obj.cls or m.id in used:
+                continue
+            d = float(np.linalg.norm(transform_points(T_world_map, m.xyz[None])[0] - truth))
+            if d < best_d:
+                best, best_d = m, d
+        row = {"object": obj.name, "class": obj.cls, "truth_xyz": [float(v) for v in truth]}
+        if best is None:
+            row.update({"id": None, "label_xyz": None, "error_m": None, "false_label": None, "missing": True})
+        else:
+            used.add(best.id)
+            xyz = transform_points(T_world_map, best.xyz[None])[0]
+            d = xyz - truth
+            row.update({"id": best.id, "label_xyz": [float(v) for v in xyz], "error_m": best_d,
+                        "dx_m": float(d[0]), "dy_m": float(d[1]), "dz_m": float(d[2]),
+                        "false_label": bool(best_d > FALSE_LABEL_M), "missing": False,
+                        "observations": best.observations})
+        labels.append(row)
+    errs = [r["error_m"] for r in labels if r["error_m"] is not None]
+    extra = [m.id for m in store if m.id not in used]
+    summary = {"objects": len(objects), "labelled": len(errs),
+               "mean_error_m": float(np.mean(errs)) if errs else None,
+               "false_labels": int(sum(bool(r["false_label"]) for r in labels if not r["missing"])),
+               "missing": int(sum(r["missing"] for r in labels)),
+               "unmatched_map_objects": len(extra), "false_label_threshold_m": FALSE_LABEL_M}
+    return labels, summary
+
+
+def score_trajectory(stamps, T_map_base, ep, T_world_map) -> dict:
+    gt = ep.T_world_base_at(stamps)
+    est = T_world_map @ T_map_base
+    r = rpe(est, gt)
+    return {"ate_rmse_m": ate_rmse(est, gt), "ate_rmse_umeyama_m": ate_rmse_umeyama(est, gt),
+            "rpe_trans_pct": r.trans_pct, "rpe_rot_deg_per_m": r.rot_deg_per_m, "poses": int(len(stamps))}
+
+
+def make_detector(input_mode: str, stages: int, fpr: bool, weights=None):
+    from sim.objects import load_catalog
+    from stack.dope_fpr import DopeDetector
+
+    dims = {c: s.dims for c, s in load_catalog().items()}
+    return DopeDetector(weights=weights, input=input_mode, stages=stages, fpr=fpr, dims=dims)
+
+
+def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_mode="rgb", stages=6, fpr=True,
+                policy="robust-mean", duration=None, weights=None, detector=None, dope_every: int = 1,
+                write_outputs: bool = True, keep_detections: bool = False) -> dict:
+    from sim.episode import Episode
+    from sim.objects import load_catalog
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    detector = detector or make_detector(input_mode, stages, fpr, weights)
+    dims = {c: s.dims for c, s in load_catalog().items()}
+    wall0 = time.perf_counter()
+    with Episode(scenario, seed=seed, duration=duration, light=light) as ep:
+        odom = LidarOdometry(ep.T_base_velodyne)
+        wheel = WheelOdometryTrack()
+        store = ObjectStore(dims=dims, policy=policy)
+        T_base_cam = ep.T_base_camera
+        dlog = DetectionLog()
+        pending: list[Detection] = []
+        all_dets: list[tuple[Detection, bool]] = []
+        map_points: list[np.ndarray] = []
+        timing = {"simulation": 0.0, "odometry": 0.0, "dope": 0.0, "fusion": 0.0}
+        t_last = time.perf_counter()
+        last_log = t_last
+        n_cam = 0
+
+        def flush(upto: float | None) -> None:
+            keep = []
+            for det in pending:
+                if upto is not None and det.stamp > upto:
+                    keep.append(det)
+                    continue
+                pose = odom.pose_at(det.stamp)
+                if pose is None:
+                    continue
+                store.add(fuse(det, odom.pose_at, T_base_cam))
+            pending[:] = keep
+
+        for msg in ep.frames():
+            now = time.perf_counter()
+            timing["simulation"] += now - t_last
+            if isinstance(msg, LidarScan):
+                pose = odom.process(msg)
+                t1 = time.perf_counter()
+                timing["odometry"] += t1 - now
+                if pose is not None and len(odom) % 5 == 1 and odom.last_points_base is not None:
+                    map_points.append(transform_points(pose, odom.last_points_base[::4]))
+                if len(odom):
+                    flush(odom.trajectory()[0][-1])
+                timing["fusion"] += time.perf_counter() - t1
+            elif isinstance(msg, CameraFrame):
+                if n_cam % dope_every == 0:
+                    dets = detector.detect(msg)
+                    t1 = time.perf_counter()
+                    timing["dope"] += t1 - now
+                    dlog.seconds += t1 - now
+                    dlog.frames += 1
+                    flags = score_detections(dlog, dets, ep.image_truth(msg))
+                    if keep_detections:
+                        all_dets.extend(zip(dets, flags))
+                    pending.extend(dets)
+                n_cam += 1
+            elif isinstance(msg, WheelOdometry):
+                wheel.add(msg)
+            t_last = time.perf_counter()
+            if t_last - last_log > 15:
+                last_log = t_last
+                log.info("t = %5.1f s of %.0f s: %d scans, %d images, %d map objects", msg.stamp, ep.duration,
+                         len(odom), dlog.frames, len(store))
+        flush(None)
+        wall = time.perf_counter() - wall0
+        stamps, poses = odom.trajectory()
+        T_world_map = ep.T_world_base_at(stamps[0])  # map = base_link at the first registered scan
+        odo = score_trajectory(stamps, poses, ep, T_world_map)
+        odo["odometry_hz"] = odom.stats.hz if hasattr(odom.stats, "hz") else None
+        ws, wp = wheel.trajectory()
+        T_world_odom0 = ep.T_world_base_at(ws[0])
+        wheel_score = score_trajectory(ws, wp, ep, T_world_odom0)
+        labels, labels_summary = score_labels(store, ep.objects, T_world_map)
+        report = {
+            "scenario": ep.sc.name, "seed": ep.seed, "light": ep.light, "input": input_mode, "stages": stages,
+            "fpr": fpr, "policy": policy, "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
+            "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,
+            "odometry": odo, "wheel_odometry": wheel_score, "detection": dlog.summary(),
+            "labels": labels, "labels_summary": labels_summary,
+        }
+        if write_outputs:
+            write_json(out / "report.json", report)
+            store.save(out / "labels.xlsx", overwrite=True)
+            store.save(out / "labels.json", overwrite=True)
+            write_tum(out / "estimate_tum.txt", stamps, T_world_map @ poses)
+            write_tum(out / "groundtruth_tum.txt", stamps, ep.T_world_base_at(stamps))
+            _map_png(out / "map.png", ep, T_world_map, poses, map_points, labels, report)
+        if keep_detections:
+            report["_detections"] = all_dets
+            report["_store"] = store
+        return report
+
+
+def _map_png(path, ep, T_world_map, poses, map_points, labels, report) -> None:
+    from testbed.plots import plt, save
+
+    fig, ax = plt.subplots(figsize=(9, 6.5))
+    if map_points:
+        pts = transform_points(T_world_map, np.vstack(map_points))
+        pts = pts[(pts[:, 2] > 0.05) & (pts[:, 2] < 2.0)]
+        ax.scatter(pts[:, 0], pts[:, 1], s=0.2, c="0.55", label="LiDAR map")
+    est = (T_world_map @ poses)[:, :2, 3]
+    gt = ep.groundtruth.T_world_base[:, :2, 3]
+    ax.plot(gt[:, 0], gt[:, 1], "g-", lw=1, label="ground-truth path")
+    ax.plot(est[:, 0], est[:, 1], "b--", lw=1, label="LiDAR odometry")
+    for row in labels:
+        tx, ty = row["truth_xyz"][:2]
+        ax.plot(tx, ty, "ko", ms=5)
+        ax.annotate(row["object"], (tx, ty), xytext=(5, 5), textcoords="offset points", fontsize=7)
+        if row["label_xyz"] is not None:
+            lx, ly = row["label_xyz"][:2]
+            color = "red" if row["false_label"] else "tab:blue"
+            ax.plot(lx, ly, "x", color=color, ms=7, mew=2)
+            ax.add_patch(plt.Circle((tx, ty), row["error_m"], fill=False, color=color, lw=0.8))
+    ax.plot([], [], "ko", label="object truth")
+    ax.plot([], [], "x", color="tab:blue", label="label")
+    ax.plot([], [], "x", color="red", label="false label")
+    s = report["labels_summary"]
+    err = s["mean_error_m"]
+    ax.set_title(f"{report['scenario']} seed {report['seed']}: {s['labelled']}/{s['objects']} labelled, "
+                 f"{s['false_labels']} false, mean error {'-' if err is None else f'{100 * err:.1f} cm'}")
+    ax.set_aspect("equal")
+    ax.legend(loc="lower left", fontsize=7)
+    ax.set_xlabel("x (m, world)")
+    ax.set_ylabel("y (m, world)")
+    save(fig, path)
+
+
+def print_summary(report: dict) -> None:
+    s = report["labels_summary"]
+    d = report["detection"]
+    o = report["odometry"]
+    print(f"{report['scenario']} seed {report['seed']} ({report['input']}, {report['stages']} stages, "
+          f"FPR {'on' if report['fpr'] else 'off'}, policy {report['policy']}): "
+          f"{report['sim_seconds']:.0f} s simulated in {report['wall_seconds']:.0f} s")
+    print(f"{'object':<12} {'id':>3} {'error cm':>9} {'false':>6}")
+    for r in report["labels"]:
+        err = "-" if r["error_m"] is None else f"{100 * r['error_m']:.1f}"
+        print(f"{r['object']:<12} {str(r['id'] or '-'):>3} {err:>9} {str(r['false_label'] if not r['missing'] else 'missing'):>6}")
+    me = s["mean_error_m"]
+    print(f"labelled {s['labelled']}/{s['objects']}, false labels {s['false_labels']}, missing {s['missing']}, "
+          f"mean error {'-' if me is None else f'{100 * me:.1f} cm'}")
+    prec = "-" if d["precision"] is None else f"{100 * d['precision']:.1f}%"
+    rec = "-" if d["recall"] is None else f"{100 * d['recall']:.1f}%"
+    fps = "-" if d["fps"] is None else f"{d['fps']:.1f}"
+    print(f"detection: {d['predictions']} predictions in {d['frames']} frames, precision {prec}, recall {rec}, "
+          f"{fps} frames/s; odometry ATE {100 * o['ate_rmse_m']:.1f} cm, RPE {o['rpe_trans_pct']:.2f} %")
