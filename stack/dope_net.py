@@ -1,0 +1,164 @@
+"""The DOPE network: a VGG-19 front end and a cascade of belief/affinity stages.
+
+Topology (Tremblay et al. 2018, as used in the DOPESLAM paper, section 3.1), scaled by a width
+multiplier so that it trains and runs on a CPU:
+
+- features: VGG-19's first ten 3x3 convolutions (64, 64, pool, 128, 128, pool, 256 x4, pool,
+  512, 512) then two 3x3 convolutions reducing to 256 and 128 features; output stride 8.
+- stage 1: three 3x3 convolutions (128), a 1x1 (512) and a 1x1 output layer.
+- stages 2..S: the previous stage's maps concatenated with the features, five 7x7 convolutions
+  (128), a 1x1 (128) and a 1x1 output layer.
+
+Every stage outputs, for every object class, 9 belief maps (8 cuboid corners + centroid, DOPE
+order) and 16 affinity maps (the x, y unit vector from each corner towards the centroid).
+All channel counts are multiplied by ``width``.
+
+Two deliberate departures from the original, both for the 2-core CPU budget (see the model card):
+one network is shared by all classes (one trunk, per-class channel groups in the output) instead
+of one network per class, and each stage is one tower whose last layer emits beliefs and
+affinities together instead of two parallel towers. The number of stages evaluated at inference
+is a call argument (1..6): a 1-stage network is the same weights with the later stages skipped.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+
+N_BELIEF = 9  # 8 corners + centroid
+N_AFFINITY = 16  # 8 corners x (dx, dy)
+STRIDE = 8
+
+
+@dataclass
+class DopeNetConfig:
+    classes: tuple = ("OrangeJuice", "Yogurt", "Mustard", "Raisins", "Cookies", "E")
+    width: float = 0.25
+    stages: int = 6
+    in_channels: int = 3
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["classes"] = list(self.classes)
+        return d
+
+    @staticmethod
+    def from_dict(d: dict) -> "DopeNetConfig":
+        return DopeNetConfig(tuple(d["classes"]), float(d["width"]), int(d["stages"]), int(d.get("in_channels", 3)))
+
+
+def _ch(n: int, width: float) -> int:
+    return max(4, int(round(n * width)))
+
+
+def _conv(cin: int, cout: int, k: int, relu: bool = True) -> list[nn.Module]:
+    layers: list[nn.Module] = [nn.Conv2d(cin, cout, k, padding=k // 2)]
+    if relu:
+        layers.append(nn.ReLU(inplace=True))
+    return layers
+
+
+class DopeNet(nn.Module):
+    """Shared-trunk DOPE for ``len(config.classes)`` classes.
+
+    ``forward(x, stages=None)`` returns a list (one entry per evaluated stage) of
+    ``(belief, affinity)`` tensors shaped (B, C*9, H/8, W/8) and (B, C*16, H/8, W/8), class-major.
+    """
+
+    def __init__(self, config: DopeNetConfig | None = None):
+        super().__init__()
+        self.config = config or DopeNetConfig()
+        w = self.config.width
+        n_cls = len(self.config.classes)
+        self.n_belief = n_cls * N_BELIEF
+        self.n_affinity = n_cls * N_AFFINITY
+        n_out = self.n_belief + self.n_affinity
+
+        vgg = [64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M", 512, 512]
+        layers: list[nn.Module] = []
+        cin = self.config.in_channels
+        for v in vgg:
+            if v == "M":
+                layers.append(nn.MaxPool2d(2, 2))
+            else:
+                layers += _conv(cin, _ch(v, w), 3)
+                cin = _ch(v, w)
+        layers += _conv(cin, _ch(256, w), 3)
+        layers += _conv(_ch(256, w), _ch(128, w), 3)
+        self.features = nn.Sequential(*layers)
+        f = _ch(128, w)
+        self.n_features = f
+
+        stages = [nn.Sequential(*_conv(f, _ch(128, w), 3), *_conv(_ch(128, w), _ch(128, w), 3),
+                                *_conv(_ch(128, w), _ch(128, w), 3), *_conv(_ch(128, w), _ch(512, w), 1),
+                                *_conv(_ch(512, w), n_out, 1, relu=False))]
+        for _ in range(1, self.config.stages):
+            mods = _conv(f + n_out, _ch(128, w), 7)
+            for _ in range(4):
+                mods += _conv(_ch(128, w), _ch(128, w), 7)
+            mods += _conv(_ch(128, w), _ch(128, w), 1)
+            mods += _conv(_ch(128, w), n_out, 1, relu=False)
+            stages.append(nn.Sequential(*mods))
+        self.stages = nn.ModuleList(stages)
+
+    @property
+    def classes(self) -> tuple:
+        return tuple(self.config.classes)
+
+    def forward(self, x: torch.Tensor, stages: int | None = None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        n = self.config.stages if stages is None else int(stages)
+        if not 1 <= n <= self.config.stages:
+            raise ValueError(f"stages must be 1..{self.config.stages}, got {n}")
+        feats = self.features(x)
+        outs = []
+        prev = None
+        for i in range(n):
+            inp = feats if i == 0 else torch.cat([feats, prev], dim=1)
+            prev = self.stages[i](inp)
+            outs.append((prev[:, :self.n_belief], prev[:, self.n_belief:]))
+        return outs
+
+    def layer_count(self, stages: int | None = None) -> int:
+        """Number of convolution layers evaluated for ``stages`` stages."""
+        n = self.config.stages if stages is None else stages
+        convs = sum(isinstance(m, nn.Conv2d) for m in self.features)
+        for i in range(n):
+            convs += sum(isinstance(m, nn.Conv2d) for m in self.stages[i])
+        return convs
+
+
+def split_class(maps: torch.Tensor, cls_index: int, per_class: int) -> torch.Tensor:
+    """The channel group of one class from a class-major (B, C*per_class, H, W) tensor."""
+    return maps[:, cls_index * per_class:(cls_index + 1) * per_class]
+
+
+def save_weights(path, model: DopeNet, half: bool = True, extra: dict | None = None) -> None:
+    """Plain state dict + config (loadable with ``torch.load(weights_only=True)``), written atomically."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    path = Path(path)
+    state = {k: (v.half() if half and v.is_floating_point() else v).contiguous().cpu()
+             for k, v in model.state_dict().items()}
+    blob = {"config": model.config.to_dict(), "state_dict": state, "extra": dict(extra or {})}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    os.close(fd)
+    torch.save(blob, tmp)
+    os.replace(tmp, path)
+
+
+def load_weights(path, device: str | torch.device = "cpu") -> tuple[DopeNet, dict]:
+    """(model in eval mode, float32, on ``device``; the file's ``extra`` dict)."""
+    try:
+        blob = torch.load(str(path), map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: DOPE weights file not found") from None
+    if not isinstance(blob, dict) or "config" not in blob or "state_dict" not in blob:
+        raise ValueError(f"{path}: expected a dict with 'config' and 'state_dict' (a DOPE weights file)")
+    model = DopeNet(DopeNetConfig.from_dict(blob["config"]))
+    model.load_state_dict({k: v.float() for k, v in blob["state_dict"].items()})
+    model.eval().to(device)
+    return model, dict(blob.get("extra", {}))

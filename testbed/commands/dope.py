@@ -1,0 +1,64 @@
+"""``dopeslam datagen`` (synthetic DOPE training data) and ``dopeslam train`` (train / resume DOPE)."""
+from __future__ import annotations
+
+import json
+import logging
+
+log = logging.getLogger(__name__)
+
+
+def _datagen(args) -> int:
+    from pathlib import Path
+
+    from sim.datagen import DatagenConfig, generate
+
+    cfg = DatagenConfig(out_dir=Path(args.out), n_images=args.images, shard_size=args.shard_size, seed=args.seed,
+                        workers=args.workers, width=args.width, height=args.height)
+    paths = generate(cfg)
+    print(f"{len(paths)} shards ({args.images} images) in {args.out}")
+    return 0
+
+
+def _train(args) -> int:
+    from stack.dope_train import TrainConfig, train
+
+    window = tuple(float(v) for v in args.depth_window.split(",")) if args.depth_window else (0.0, 0.0)
+    cfg = TrainConfig(data_dir=args.data, out_dir=args.out, input=args.input, width=args.width, stages=args.stages,
+                      batch=args.batch, crop=(args.crop, args.crop), lr=args.lr, max_steps=args.steps,
+                      max_minutes=args.minutes, checkpoint_minutes=args.checkpoint_minutes, seed=args.seed,
+                      init_from=args.init_from or "", depth_window=window, threads=args.threads,
+                      lr_decay_steps=tuple(int(s) for s in args.lr_decay.split(",")) if args.lr_decay else ())
+    summary = train(cfg)
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("datagen", help="render synthetic DOPE training data (RGB, depth, segmentation, cuboid annotations)")
+    p.add_argument("--out", required=True, help="output directory for shard_NNNNN.npz/.json")
+    p.add_argument("--images", type=int, default=4000)
+    p.add_argument("--shard-size", type=int, default=50)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--width", type=int, default=320)
+    p.add_argument("--height", type=int, default=240)
+    p.set_defaults(func=_datagen)
+
+    t = subparsers.add_parser("train", help="train (or resume) the DOPE network on datagen shards")
+    t.add_argument("--data", required=True, help="directory of datagen shards")
+    t.add_argument("--out", required=True, help="run directory (checkpoint.pt, weights_fp16.pt, loss.png, evals.json)")
+    t.add_argument("--input", choices=("rgb", "depth"), default="rgb")
+    t.add_argument("--width", type=float, default=0.25, help="channel width multiplier")
+    t.add_argument("--stages", type=int, default=6)
+    t.add_argument("--batch", type=int, default=16)
+    t.add_argument("--crop", type=int, default=128, help="square training crop, input pixels (multiple of 8)")
+    t.add_argument("--lr", type=float, default=1e-3)
+    t.add_argument("--lr-decay", default="5000,8000", help="steps at which the learning rate is multiplied by 0.3")
+    t.add_argument("--steps", type=int, default=1_000_000)
+    t.add_argument("--minutes", type=float, default=1e9, help="stop after this much wall time")
+    t.add_argument("--checkpoint-minutes", type=float, default=5.0)
+    t.add_argument("--init-from", default="", help="weights to start from (e.g. the RGB weights for the depth net)")
+    t.add_argument("--depth-window", default="", help="near,far metres (depth input; default: around a random object)")
+    t.add_argument("--threads", type=int, default=0)
+    t.add_argument("--seed", type=int, default=0)
+    t.set_defaults(func=_train)
