@@ -149,6 +149,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         dlog = DetectionLog()
         pending: list[Detection] = []
         all_dets: list[tuple[Detection, bool]] = []
+        observations = []  # every fused detection, map frame (kept for experiments)
         map_points: list[np.ndarray] = []
         timing = {"simulation": 0.0, "odometry": 0.0, "dope": 0.0, "fusion": 0.0}
         t_last = time.perf_counter()
@@ -164,7 +165,10 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
                 pose = odom.pose_at(det.stamp)
                 if pose is None:
                     continue
-                store.add(fuse(det, odom.pose_at, T_base_cam))
+                obs = fuse(det, odom.pose_at, T_base_cam)
+                store.add(obs)
+                if keep_detections:
+                    observations.append(obs)
             pending[:] = keep
 
         for msg in ep.frames():
@@ -225,6 +229,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         if keep_detections:
             report["_detections"] = all_dets
             report["_store"] = store
+            report["_observations"] = observations
+            report["_T_world_map"] = T_world_map
+            report["_objects"] = list(ep.objects)
         return report
 
 

@@ -1,0 +1,43 @@
+"""``dopeslam experiment NAME --out DIR``: the paper's experiments and the darkness sweep."""
+from __future__ import annotations
+
+import importlib
+
+from testbed.commands.run import add_dope_options
+
+# name -> module under testbed.experiments with run(out_dir, **options) and table(result)
+EXPERIMENTS = {
+    "depth-grid": "testbed.experiments.depth_grid",      # paper experiment 1
+    "precision": "testbed.experiments.precision",        # paper experiment 2
+    "localization": "testbed.experiments.localization",  # paper experiment 3
+    "darkness": "testbed.experiments.darkness",          # light sweep, RGB vs depth
+}
+
+
+def register(sub) -> None:
+    p = sub.add_parser("experiment", help="run one of the paper's experiments (depth-grid, precision, localization) or the darkness sweep")
+    p.add_argument("name", choices=sorted(EXPERIMENTS))
+    p.add_argument("--out", default=None, help="output folder (default out/<name>)")
+    p.add_argument("--scenario", default=None)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--duration", type=float, default=None)
+    p.add_argument("--runs", type=int, default=None, help="precision: runs per configuration (paper: 5)")
+    p.add_argument("--seconds", type=float, default=None, help="precision: seconds per run (paper: 60)")
+    p.add_argument("--frames", type=int, default=None, help="depth-grid: frames per grid point")
+    add_dope_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    module = importlib.import_module(EXPERIMENTS[args.name])
+    out = args.out or f"out/{args.name}"
+    opts = {"scenario": args.scenario, "seed": args.seed, "duration": args.duration, "runs": args.runs,
+            "seconds": args.seconds, "frames": args.frames, "stages": args.stages, "input_mode": args.input_mode,
+            "weights": args.weights}
+    import inspect
+
+    accepted = inspect.signature(module.run).parameters
+    result = module.run(out, **{k: v for k, v in opts.items() if k in accepted and v is not None})
+    print(module.table(result))
+    print(f"wrote {out}")
+    return 0

@@ -1,0 +1,63 @@
+"""The darkness sweep: the default scenario at light levels from 1 down to 0, with RGB input and
+with depth input; labelled objects, false labels and mean error against light level (JSON + PNG)."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from testbed.run import run_episode
+from testbed.simulate import write_json
+
+log = logging.getLogger(__name__)
+LEVELS = (1.0, 0.5, 0.25, 0.1, 0.0)
+
+
+def run(out_dir, scenario=None, seed=None, levels=LEVELS, inputs=("rgb", "depth"), stages=6, duration=None,
+        policy="robust-mean") -> dict:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for input_mode in inputs:
+        for light in levels:
+            log.info("darkness sweep: %s input at light %.2f", input_mode, light)
+            rep = run_episode(scenario, out / f"{input_mode}_light{light:.2f}", seed, light, input_mode, stages, True,
+                              policy, duration)
+            s = rep["labels_summary"]
+            rows.append({"input": input_mode, "light": light, "labelled": s["labelled"], "objects": s["objects"],
+                         "false_labels": s["false_labels"], "mean_error_m": s["mean_error_m"],
+                         "precision": rep["detection"]["precision"], "recall": rep["detection"]["recall"]})
+    result = {"scenario": rep["scenario"], "seed": rep["seed"], "stages": stages, "policy": policy, "rows": rows}
+    write_json(out / "darkness.json", result)
+    plot(result, out / "darkness.png")
+    return result
+
+
+def plot(result, path) -> None:
+    from testbed.plots import plt, save
+
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
+    for input_mode, style in (("rgb", "o-"), ("depth", "s--")):
+        rs = [r for r in result["rows"] if r["input"] == input_mode]
+        if not rs:
+            continue
+        x = [r["light"] for r in rs]
+        axes[0].plot(x, [r["labelled"] for r in rs], style, label=input_mode)
+        axes[1].plot(x, [r["false_labels"] for r in rs], style, label=input_mode)
+        axes[2].plot(x, [np.nan if r["mean_error_m"] is None else 100 * r["mean_error_m"] for r in rs], style,
+                     label=input_mode)
+    for ax, title in zip(axes, ("objects labelled", "false labels", "mean label error (cm)")):
+        ax.set_xlabel("light level (1 = lit, 0 = dark)")
+        ax.set_title(title)
+        ax.invert_xaxis()
+        ax.legend()
+    save(fig, path)
+
+
+def table(result) -> str:
+    lines = [f"{'input':<6} {'light':>5} {'labelled':>9} {'false':>6} {'mean err cm':>12}"]
+    for r in result["rows"]:
+        err = "-" if r["mean_error_m"] is None else f"{100 * r['mean_error_m']:.1f}"
+        lines.append(f"{r['input']:<6} {r['light']:>5.2f} {r['labelled']:>5}/{r['objects']} {r['false_labels']:>6} {err:>12}")
+    return "\n".join(lines)
