@@ -504,7 +504,7 @@ class BagReader:
             option = {"camera_info": "--camera-info-topic"}.get(what, f"--{what}-topic")
             hint = (f"several candidates ({', '.join(sorted(by_type))}): pass {option}" if by_type
                     else f"pass {option} if it has another name")
-            raise MissingTopicError(self.path, what, f"{' or '.join(names[:2])} ({expected})", self.topics, hint)
+            raise MissingTopicError(self.path, what, f"{names[0]} or another {expected} topic", self.topics, hint)
         return None
 
     @staticmethod
