@@ -489,3 +489,14 @@ def test_compressed_colour_images(tmp_path):
         frames = list(bag.camera_frames())
     assert len(frames) == 1
     np.testing.assert_array_equal(frames[0].rgb, rgb)
+
+
+def test_quaternion_of_rotation_matrix_in_every_branch():
+    from scipy.spatial.transform import Rotation
+
+    from stack.transforms import from_xyz_quat
+    from testbed.bags.convert import quat_xyzw
+
+    half_turns = Rotation.from_euler("xyz", [[np.pi, 0, 0], [0, np.pi, 0], [0, 0, np.pi], [np.pi, np.pi / 2, 0]])
+    for R in np.concatenate([Rotation.random(200, random_state=0).as_matrix(), half_turns.as_matrix()]):
+        np.testing.assert_allclose(from_xyz_quat([0, 0, 0], quat_xyzw(R))[:3, :3], R, atol=1e-12)
