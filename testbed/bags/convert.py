@@ -443,10 +443,10 @@ def tf_message(d: Dialect, transforms: list[Any]) -> Any:
     return d.make("tf2_msgs/msg/TFMessage", transforms=transforms)
 
 
-# The Jackal velocity controller's covariance diagonals (x y z roll pitch yaw): the unobserved
-# axes are huge so the EKF ignores them.
+# Covariance diagonals (x y z roll pitch yaw) in the style of diff_drive_controller configs such
+# as the Jackal's: small on the planar axes wheels measure, huge on the rest so an EKF ignores them.
 _JACKAL_POSE_COV = (0.001, 0.001, 1e6, 1e6, 1e6, 0.03)
-_JACKAL_TWIST_COV = (0.001, 0.001, 1e6, 1e6, 1e6, 0.03)
+_JACKAL_TWIST_COV = (0.001, 0.001, 0.001, 1e6, 1e6, 0.03)
 
 
 def odometry_msg(d: Dialect, stamp_ns: int, odom: WheelOdometry, frame_id: str, child: str) -> Any:

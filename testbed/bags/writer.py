@@ -4,10 +4,14 @@ An episode streams into the writer as it runs::
 
     with BagWriter("run.bag") as bag:                      # ROS 1; "run" (no suffix) -> ROS 2
         bag.write_extrinsics(ep.T_base_velodyne, ep.T_base_camera)
+        bag.write_ground_truth_objects(0.0, ep.objects)
+        done = 0
         for msg in ep.frames():
             bag.write(msg)                                 # LidarScan | CameraFrame | WheelOdometry
-            bag.write_ground_truth_pose(msg.stamp, ep.T_world_base_at(msg.stamp))
-        bag.write_ground_truth_objects(0.0, ep.objects)
+            gt = ep.groundtruth                            # base_link at every physics step so far
+            for t, T_world_base in zip(gt.base_stamps[done:], gt.base_poses[done:]):
+                bag.write_ground_truth_pose(t, T_world_base)
+            done = len(gt.base_stamps)
 
 The bag is written under a hidden temporary name next to the target and moved
 into place only when the ``with`` block ends without an exception; on an
