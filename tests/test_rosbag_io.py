@@ -500,3 +500,15 @@ def test_quaternion_of_rotation_matrix_in_every_branch():
     half_turns = Rotation.from_euler("xyz", [[np.pi, 0, 0], [0, np.pi, 0], [0, 0, np.pi], [np.pi, np.pi / 2, 0]])
     for R in np.concatenate([Rotation.random(200, random_state=0).as_matrix(), half_turns.as_matrix()]):
         np.testing.assert_allclose(from_xyz_quat([0, 0, 0], quat_xyzw(R))[:3, :3], R, atol=1e-12)
+
+
+def test_ros2_directory_without_metadata_yaml_is_read_from_its_storage_file(tmp_path):
+    msgs = episode(seed=14, n_scans=12, n_points=20000)
+    path = tmp_path / "crashed"
+    record(path, "ros2", "mcap", msgs)
+    (path / "metadata.yaml").unlink()  # the recorder died before writing it
+    with BagReader(path) as bag:
+        assert len(list(bag.scans())) == 12
+    cut_in_half(path)
+    with BagReader(path) as bag:
+        assert 0 < len(list(bag.scans())) < 12 and "recovered" in bag.salvaged
