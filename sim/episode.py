@@ -14,6 +14,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 import pybullet as p
+from scipy.spatial.transform import Rotation
 
 from sim.camera import default_camera_info, new_client, render_rgbd
 from sim.lidar import BeamPattern, BoxRayCaster
@@ -65,6 +66,24 @@ class RouteFollower:
         return v, w
 
 
+def _interpolate_poses(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(M, 4, 4) poses at times ``t`` (clamped to the ends): linear translation, rotation along the
+    geodesic between neighbouring samples (what ``interpolate_trajectory`` gives, for many query
+    times at the cost of one small rotation log per segment)."""
+    if len(stamps) == 1:
+        return np.repeat(poses[:1], len(t), axis=0)
+    t = np.clip(t, stamps[0], stamps[-1])
+    i = np.clip(np.searchsorted(stamps, t, side="right") - 1, 0, len(stamps) - 2)
+    f = (t - stamps[i]) / (stamps[i + 1] - stamps[i])
+    R = poses[:, :3, :3]
+    seg_rotvec = Rotation.from_matrix(np.einsum("nji,njk->nik", R[:-1], R[1:])).as_rotvec()  # R_i^T R_i+1
+    out = np.zeros((len(t), 4, 4))
+    out[:, :3, :3] = R[i] @ Rotation.from_rotvec(f[:, None] * seg_rotvec[i]).as_matrix()
+    out[:, :3, 3] = poses[i, :3, 3] + f[:, None] * (poses[i + 1, :3, 3] - poses[i, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
 @dataclass
 class GroundTruth:
     base_stamps: list = field(default_factory=list)
@@ -94,7 +113,7 @@ class Episode:
         self.use_lidar = s.lidar if lidar is None else lidar
         ss = np.random.SeedSequence(self.seed)
         self.rng_lidar, self.rng_camera, self.rng_odom = (np.random.default_rng(c) for c in ss.spawn(3))
-        self.client, self.renderer = new_client(renderer)
+        self.client, self.renderer = new_client(renderer if self.use_camera else "tiny")  # no EGL without a camera
         p.setGravity(0, 0, -9.81, physicsClientId=self.client)
         self.dt = 1.0 / self.sc.physics_hz
         p.setTimeStep(self.dt, physicsClientId=self.client)
@@ -181,22 +200,26 @@ class Episode:
     def _lidar_scan(self, stamp: float, dirs, col_t, az) -> LidarScan:
         gt = self.groundtruth
         n = int(round(self.beams.period / self.dt)) + 2
-        T_wb = interpolate_trajectory(np.asarray(gt.base_stamps[-n:]), np.asarray(gt.base_poses[-n:]), stamp + col_t)
+        T_wb = _interpolate_poses(np.asarray(gt.base_stamps[-n:]), np.asarray(gt.base_poses[-n:]), stamp + col_t)
         T_ws = T_wb @ self._T_base_velodyne  # (A, 4, 4) sensor pose at each column's firing time
         R = T_ws[:, :3, :3]
-        dirs_world = np.einsum("aij,arj->ari", R, dirs)
-        origins = np.broadcast_to(T_ws[:, None, :3, 3], dirs_world.shape)
+        # world ray directions per component: R @ dirs, with dirs (A, R, 3) split once per episode
+        if getattr(self, "_dirs_split", None) is None or self._dirs_split[0].shape != dirs.shape[:2]:
+            self._dirs_split = tuple(np.ascontiguousarray(dirs[..., k]) for k in range(3))
+        sx, sy, sz = self._dirs_split
+        dw = [R[:, i, 0, None] * sx + R[:, i, 1, None] * sy + R[:, i, 2, None] * sz for i in range(3)]
+        o = [np.ascontiguousarray(T_ws[:, i, 3, None]) for i in range(3)]
         az_world = az + np.arctan2(R[:, 1, 0], R[:, 0, 0])
-        ranges, hit = self.caster.cast(origins, dirs_world, az_world, self.beams.range_max)
+        ranges, hit = self.caster.cast_components(*o, *dw, az_world, self.beams.range_max)
         if self.sc.sensors.noise:
             ranges = ranges + self.rng_lidar.standard_normal(ranges.shape) * self.beams.range_noise
         ok = np.isfinite(ranges) & (ranges >= self.beams.range_min) & (ranges <= self.beams.range_max)
         A, Rr = ranges.shape
-        points = (dirs * ranges[..., None])[ok]
+        r_ok = ranges[ok]
+        points = np.column_stack([sx[ok] * r_ok, sy[ok] * r_ok, sz[ok] * r_ok])
         ring = np.broadcast_to(np.arange(Rr, dtype=np.uint16)[None, :], (A, Rr))[ok]
         times = np.broadcast_to(col_t[:, None], (A, Rr))[ok]
-        refl = self.caster.refl[np.maximum(hit, 0)]
-        intensity = (100.0 * refl)[ok].astype(np.float32)  # reflectivity of the surface hit
+        intensity = (100.0 * self.caster.refl[hit[ok]]).astype(np.float32)  # reflectivity of the surface hit
         return LidarScan(stamp, points.astype(np.float32), times.astype(np.float64), ring.copy(), intensity,
                          "velodyne", T_ws[0].copy())
 
