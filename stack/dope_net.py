@@ -128,6 +128,28 @@ class DopeNet(nn.Module):
         return convs
 
 
+def expand_stages(model: DopeNet, stages: int) -> DopeNet:
+    """A network with ``stages`` stages whose extra stages start as copies of ``model``'s last stage.
+
+    Stages 2..S share one shape (features + previous maps in, maps out), so a trained refinement stage
+    can be repeated: training a short cascade and repeating its last stage is how the CPU budget buys
+    a 6-stage network (the copies can then be fine-tuned).
+    """
+    n = model.config.stages
+    if stages < n:
+        raise ValueError(f"expand_stages: cannot shrink {n} stages to {stages}")
+    if n < 2 and stages > n:
+        raise ValueError("expand_stages: needs a trained refinement stage (a network of at least 2 stages)")
+    cfg = DopeNetConfig(model.config.classes, model.config.width, stages, model.config.in_channels)
+    out = DopeNet(cfg)
+    state = dict(model.state_dict())
+    for i in range(n, stages):
+        for k, v in model.stages[n - 1].state_dict().items():
+            state[f"stages.{i}.{k}"] = v.clone()
+    out.load_state_dict(state)
+    return out.train(model.training)
+
+
 def split_class(maps: torch.Tensor, cls_index: int, per_class: int) -> torch.Tensor:
     """The channel group of one class from a class-major (B, C*per_class, H, W) tensor."""
     return maps[:, cls_index * per_class:(cls_index + 1) * per_class]

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 import torch
 
-from stack.dope_net import N_AFFINITY, N_BELIEF, STRIDE, DopeNet, DopeNetConfig, save_weights
+from stack.dope_net import N_BELIEF, STRIDE, DopeNet, DopeNetConfig, expand_stages, save_weights
 from stack.dope_targets import make_targets, to_input_px
 
 log = logging.getLogger(__name__)
@@ -47,7 +47,7 @@ class TrainConfig:
     input: str = "rgb"  # "rgb" | "depth"
     width: float = 0.25
     stages: int = 6
-    batch: int = 16
+    batch: int = 8
     crop: tuple = (128, 128)  # (w, h) input pixels, multiples of 8
     lr: float = 1e-3
     lr_decay_steps: tuple = (5000, 8000)  # multiply lr by 0.3 at each
@@ -58,7 +58,7 @@ class TrainConfig:
     sigma: float = 1.0
     radius: float = 1.5
     val_shards: int = 2  # the first shards (by index) are held out
-    val_images: int = 60
+    val_images: int = 24
     seed: int = 0
     init_from: str = ""  # weights/checkpoint to start from (e.g. RGB weights for the depth net)
     depth_window: tuple = (0.0, 0.0)  # (near, far) m for depth input; (0, 0) = around the nearest object
@@ -369,9 +369,16 @@ def train(cfg: TrainConfig) -> dict:
         log.info("resumed %s at step %d", ckpt_path, step)
     elif cfg.init_from:
         blob = torch.load(cfg.init_from, map_location="cpu", weights_only=True)
-        state = blob.get("state_dict") or blob.get("model")
-        model.load_state_dict({k: v.float() for k, v in state.items()})
-        log.info("initialised from %s", cfg.init_from)
+        state = {k: v.float() for k, v in (blob.get("state_dict") or blob.get("model")).items()}
+        n_src = 1 + max(int(k.split(".")[1]) for k in state if k.startswith("stages."))
+        if n_src != cfg.stages:
+            # a shorter cascade: its last stage is repeated (expand_stages) to reach cfg.stages
+            src = DopeNet(DopeNetConfig(tuple(cfg.classes), cfg.width, n_src, in_ch))
+            src.load_state_dict(state)
+            state = expand_stages(src, cfg.stages).state_dict() if n_src < cfg.stages else \
+                {k: v for k, v in state.items() if not k.startswith("stages.") or int(k.split(".")[1]) < cfg.stages}
+        model.load_state_dict(state)
+        log.info("initialised from %s (%d stages -> %d)", cfg.init_from, n_src, cfg.stages)
 
     data = ShardData(cfg.data_dir, cfg.classes, cfg.min_visible, load_depth=cfg.input == "depth")
     avail = data.available()

@@ -33,6 +33,59 @@ def _train(args) -> int:
     return 0
 
 
+def _detector(args):
+    from sim.objects import load_catalog
+    from stack.dope_fpr import DopeDetector
+
+    dims = {c: s.dims for c, s in load_catalog().items()}
+    return DopeDetector(weights=args.weights or None, input=args.input, stages=6, fpr=True, dims=dims,
+                        thresholds=getattr(args, "thresholds", None) or None)
+
+
+def _shards(args) -> list[int]:
+    if args.shards:
+        a, b = (int(v) for v in args.shards.split(":"))
+        return list(range(a, b))
+    return [0, 1]  # the training run's held-out shards
+
+
+def _evaluate(args) -> int:
+    from stack.dope_eval import evaluate
+
+    det = _detector(args)
+    res = evaluate(det, args.data, _shards(args))
+    table = res["per_stages"]
+    print(f"{res['images']} images from {args.data}, weights {det.weights_path}")
+    print("stages  instances  detected  det(FPR)  median pos err  ADD pass  precision  precision(FPR)")
+    for s, r in table.items():
+        pe = "n/a" if r["median_position_error_m"] is None else f"{100 * r['median_position_error_m']:.1f} cm"
+        print(f"{s:>6}  {r['instances']:>9}  {100 * r['detection_rate']:7.1f}%  {100 * r['detection_rate_fpr']:7.1f}%"
+              f"  {pe:>14}  {100 * r['add_pass_rate']:7.1f}%  {100 * r['precision']:8.1f}%  {100 * r['precision_fpr']:12.1f}%")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"weights": str(det.weights_path), "input": args.input, "data": args.data,
+                       "shards": _shards(args), "per_stages": table}, f, indent=1)
+    return 0
+
+
+def _calibrate(args) -> int:
+    from stack.dope_eval import evaluate
+    from stack.dope_fpr import FprThresholds, file_sha256
+
+    det = _detector(args)
+    det.fpr = False
+    res = evaluate(det, args.data, _shards(args))
+    th = FprThresholds.calibrate(res["records"], args.target_precision,
+                                 meta={"weights_sha256": file_sha256(det.weights_path), "data": args.data,
+                                       "shards": _shards(args), "input": args.input})
+    th.save(args.out)
+    for cls, row in th.meta["stats"].items():
+        print(cls, {s: (round(v["threshold"], 2), round(v["precision"], 3), round(v["recall"], 3), v["n"])
+                    for s, v in row.items()})
+    print(f"thresholds written to {args.out}")
+    return 0
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("datagen", help="render synthetic DOPE training data (RGB, depth, segmentation, cuboid annotations)")
     p.add_argument("--out", required=True, help="output directory for shard_NNNNN.npz/.json")
@@ -50,7 +103,7 @@ def register(subparsers) -> None:
     t.add_argument("--input", choices=("rgb", "depth"), default="rgb")
     t.add_argument("--width", type=float, default=0.25, help="channel width multiplier")
     t.add_argument("--stages", type=int, default=6)
-    t.add_argument("--batch", type=int, default=16)
+    t.add_argument("--batch", type=int, default=8)
     t.add_argument("--crop", type=int, default=128, help="square training crop, input pixels (multiple of 8)")
     t.add_argument("--lr", type=float, default=1e-3)
     t.add_argument("--lr-decay", default="5000,8000", help="steps at which the learning rate is multiplied by 0.3")
@@ -62,3 +115,18 @@ def register(subparsers) -> None:
     t.add_argument("--threads", type=int, default=0)
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_train)
+
+    for name, func, helptext in (("dope-eval", _evaluate, "DOPE accuracy per stage count on held-out datagen shards"),
+                                 ("calibrate-fpr", _calibrate, "calibrate FPR belief-sum thresholds per class and stage count")):
+        e = subparsers.add_parser(name, help=helptext)
+        e.add_argument("--data", required=True, help="directory of datagen shards")
+        e.add_argument("--shards", default="", help="A:B shard index range (default: the held-out shards 0:2)")
+        e.add_argument("--weights", default="", help="weights file (default: shipped for --input)")
+        e.add_argument("--input", choices=("rgb", "depth"), default="rgb")
+        if name == "calibrate-fpr":
+            e.add_argument("--target-precision", type=float, default=0.995)
+            e.add_argument("--out", required=True, help="thresholds JSON (e.g. stack/weights/fpr_thresholds_rgb.json)")
+        else:
+            e.add_argument("--thresholds", default="", help="FPR thresholds JSON (default: beside the weights)")
+            e.add_argument("--out", default="", help="write the table as JSON")
+        e.set_defaults(func=func)

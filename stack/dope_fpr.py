@@ -1,0 +1,448 @@
+"""DOPE inference and the false-positive reduction (FPR) filter: camera frame in, object poses out.
+
+Pipeline (paper sections 3.1 and 3.4):
+
+1. The frame (RGB, or depth sliced to a window and cleaned, :mod:`stack.depth_window`) is resized to
+   the network's input size (320x240 by default) and run through :class:`stack.dope_net.DopeNet`,
+   keeping the outputs of every stage, so one pass serves every stage count 1..6.
+2. Per class, peaks of the smoothed belief maps (local maxima above ``peak_threshold``) give centroid
+   and corner candidates; each corner joins the centroid its affinity vector points at (within
+   ``angle_threshold``); peak positions are refined to sub-cell precision (belief-weighted centroid).
+3. ``cv2.solvePnP`` (EPnP, then Levenberg-Marquardt) with the class's cuboid gives the pose in the
+   camera optical frame.
+4. FPR: the belief tensor of the class (its 9 maps of the evaluated stage, negative values clipped)
+   is summed; a sharp, single prediction has a small sum, several objects or an unsure network a
+   large one. A detection passes when its sum is at or below the threshold for (class, stage count).
+   Thresholds are calibrated automatically (:func:`calibrate_threshold`: the largest recall whose
+   precision stays at or above a target) and can be overridden by hand.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from scipy.ndimage import maximum_filter
+
+from stack.depth_window import preprocess_depth, sliding_windows
+from stack.dope_net import N_AFFINITY, N_BELIEF, STRIDE, DopeNet, load_weights
+from stack.dope_targets import to_input_px
+from stack.messages import CameraFrame, Detection
+
+log = logging.getLogger(__name__)
+
+WEIGHTS_DIR = Path(__file__).parent / "weights"
+MEAN, STD = 0.5, 0.25  # as in training (stack.dope_train)
+
+
+def default_weights(input_mode: str = "rgb") -> Path:
+    """The shipped weights for ``input_mode`` ('rgb' or 'depth')."""
+    if input_mode not in ("rgb", "depth"):
+        raise ValueError(f"input must be 'rgb' or 'depth', got {input_mode!r}")
+    return WEIGHTS_DIR / f"dope_{input_mode}.pt"
+
+
+def default_thresholds_path(input_mode: str = "rgb") -> Path:
+    return WEIGHTS_DIR / f"fpr_thresholds_{input_mode}.json"
+
+
+def cuboid_points(dims) -> np.ndarray:
+    """(9, 3) cuboid corners + centroid in DOPE order in the object frame (x right, y top, z front)."""
+    w, h, d = np.asarray(dims, dtype=float) / 2
+    return np.array([[w, h, d], [-w, h, d], [-w, -h, d], [w, -h, d],
+                     [w, h, -d], [-w, h, -d], [-w, -h, -d], [w, -h, -d], [0.0, 0.0, 0.0]])
+
+
+def file_sha256(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+# --- peaks, association, PnP --------------------------------------------------------------------
+
+def find_peaks(belief: np.ndarray, threshold: float, smooth_sigma: float = 0.0) -> list[tuple[int, int, float]]:
+    """Local maxima (3x3) of a 2D map above ``threshold``: [(row, col, value)], strongest first."""
+    m = belief
+    if smooth_sigma > 0:
+        m = cv2.GaussianBlur(belief.astype(np.float32), (0, 0), smooth_sigma)
+    peaks = (m == maximum_filter(m, size=3, mode="constant", cval=-np.inf)) & (m > threshold)
+    rows, cols = np.nonzero(peaks)
+    vals = m[rows, cols]
+    out: list[tuple[int, int, float]] = []
+    for i in np.argsort(-vals, kind="stable"):
+        r, c = int(rows[i]), int(cols[i])
+        if any(abs(r - q[0]) <= 1 and abs(c - q[1]) <= 1 for q in out):
+            continue  # a plateau (equal neighbours) is one peak
+        out.append((r, c, float(vals[i])))
+    return out
+
+
+def refine_peak(belief: np.ndarray, row: int, col: int, r: int = 1) -> tuple[float, float]:
+    """(x, y) sub-cell peak: belief-weighted centroid of the (2r+1)^2 window, negatives clipped."""
+    h, w = belief.shape
+    y0, y1, x0, x1 = max(0, row - r), min(h, row + r + 1), max(0, col - r), min(w, col + r + 1)
+    win = np.clip(belief[y0:y1, x0:x1], 0, None).astype(np.float64)
+    s = win.sum()
+    if s <= 1e-12:
+        return float(col), float(row)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    return float((win * xx).sum() / s), float((win * yy).sum() / s)
+
+
+@dataclass
+class RawObject:
+    """Key points of one object instance found in one class's maps (output-grid coordinates)."""
+
+    points: np.ndarray  # (9, 2) x, y in output cells, NaN where missing
+    scores: np.ndarray  # (9,)
+
+
+def associate(belief: np.ndarray, affinity: np.ndarray, peak_threshold: float = 0.1,
+              angle_threshold: float = 0.5, smooth_sigma: float = 0.0, min_corners: int = 4) -> list[RawObject]:
+    """Group corner peaks to centroid peaks via the affinity fields (one class: belief (9,h,w), affinity (16,h,w)).
+
+    A corner joins the centroid whose direction from the corner is within ``angle_threshold`` radians
+    of the corner's affinity vector; among those, the nearest in angle (ties: nearer in distance).
+    Per centroid and corner the strongest peak is kept. Objects with fewer than ``min_corners``
+    corners are dropped.
+    """
+    centres = find_peaks(belief[8], peak_threshold, smooth_sigma)
+    if not centres:
+        return []
+    objs = []
+    for r, c, v in centres:
+        pts = np.full((9, 2), np.nan)
+        sc = np.zeros(9)
+        pts[8] = refine_peak(belief[8], r, c)
+        sc[8] = v
+        objs.append((pts, sc))
+    cpos = np.array([o[0][8] for o in objs])
+    for k in range(8):
+        for r, c, v in find_peaks(belief[k], peak_threshold, smooth_sigma):
+            x, y = refine_peak(belief[k], r, c)
+            vec = affinity[2 * k:2 * k + 2, r, c].astype(np.float64)
+            nv = np.linalg.norm(vec)
+            d = cpos - np.array([x, y])
+            dist = np.linalg.norm(d, axis=1)
+            if nv < 1e-3:
+                # no direction (corner on top of the centroid): accept the nearest centre if very close
+                best = int(np.argmin(dist))
+                if dist[best] > 1.0:
+                    continue
+            else:
+                cosang = (d @ (vec / nv)) / np.maximum(dist, 1e-6)
+                ang = np.arccos(np.clip(cosang, -1, 1))
+                ang[dist < 0.5] = 0.0
+                ok = np.nonzero(ang <= angle_threshold)[0]
+                if len(ok) == 0:
+                    continue
+                best = int(ok[np.lexsort((dist[ok], np.round(ang[ok], 2)))[0]])
+            pts, sc = objs[best]
+            if v > sc[k]:
+                pts[k] = (x, y)
+                sc[k] = v
+    out = []
+    for pts, sc in objs:
+        if np.sum(np.isfinite(pts[:8, 0])) >= min_corners:
+            out.append(RawObject(pts, sc))
+    return out
+
+
+def solve_pose(keypoints_px: np.ndarray, dims, K: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """T_cam_obj (4x4) from (9, 2) key points (NaN = missing) and the cuboid; with the RMS reprojection error.
+
+    EPnP for the initial estimate, then iterative (Levenberg-Marquardt) refinement. None when fewer
+    than 5 key points or the solution is behind the camera.
+    """
+    obj = cuboid_points(dims)
+    ok = np.all(np.isfinite(keypoints_px), axis=1)
+    if ok.sum() < 5:
+        return None
+    P = obj[ok].astype(np.float64)
+    uv = keypoints_px[ok].astype(np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    success, rvec, tvec = cv2.solvePnP(P, uv, K, None, flags=cv2.SOLVEPNP_EPNP)
+    if not success:
+        return None
+    if tvec[2, 0] <= 0:
+        success, rvec, tvec = cv2.solvePnP(P, uv, K, None, flags=cv2.SOLVEPNP_SQPNP) if hasattr(cv2, "SOLVEPNP_SQPNP") \
+            else (False, None, None)
+        if not success or tvec[2, 0] <= 0:
+            return None
+    rvec, tvec = cv2.solvePnPRefineLM(P, uv, K, None, rvec, tvec)
+    if tvec[2, 0] <= 0:
+        return None
+    proj, _ = cv2.projectPoints(P, rvec, tvec, K, None)
+    err = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - uv) ** 2, axis=1))))
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec.ravel()
+    return T, err
+
+
+# --- FPR -----------------------------------------------------------------------------------------
+
+def belief_sum(belief_cls: np.ndarray) -> float:
+    """FPR's quantity: the sum of one class's belief tensor (9 maps), negative values clipped."""
+    return float(np.clip(belief_cls, 0, None).sum())
+
+
+def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_positives: int | None = None) -> dict:
+    """The belief-sum threshold with the largest recall whose precision is at least ``target_precision``.
+
+    ``scores``: belief sums of a calibration set's predictions; ``correct``: whether each is a true
+    detection. A prediction passes when its score <= threshold. Recall is passed-correct over
+    ``n_positives`` (default: all correct predictions). Cuts are only placed between distinct scores.
+    Returns {threshold, precision, recall, passed}; threshold = -inf when no cut reaches the target.
+    """
+    s = np.asarray(scores, dtype=float)
+    c = np.asarray(correct, dtype=bool)
+    if s.shape != c.shape:
+        raise ValueError(f"scores ({s.shape}) and correct ({c.shape}) differ in shape")
+    n_pos = int(c.sum()) if n_positives is None else int(n_positives)
+    best = {"threshold": -math.inf, "precision": 1.0, "recall": 0.0, "passed": 0}
+    if len(s) == 0:
+        return best
+    order = np.argsort(s, kind="stable")
+    s, c = s[order], c[order]
+    tp = np.cumsum(c)
+    n = np.arange(1, len(s) + 1)
+    prec = tp / n
+    last_of_value = np.r_[s[1:] != s[:-1], True]  # cut only after the last of equal scores
+    for i in np.nonzero(last_of_value & (prec >= target_precision))[0]:
+        rec = tp[i] / max(n_pos, 1)
+        if rec > best["recall"] or (rec == best["recall"] and best["passed"] == 0):
+            nxt = s[i + 1] if i + 1 < len(s) else s[i] + 1.0
+            best = {"threshold": float(0.5 * (s[i] + nxt)), "precision": float(prec[i]), "recall": float(rec),
+                    "passed": int(n[i])}
+    return best
+
+
+@dataclass
+class FprThresholds:
+    """Belief-sum thresholds per class and stage count ({cls: {stages: threshold}}), with overrides."""
+
+    table: dict = field(default_factory=dict)
+    default: float = math.inf  # used where the table has no entry
+    overrides: dict = field(default_factory=dict)  # manual {cls: {stages: threshold}} or {cls: threshold}
+    meta: dict = field(default_factory=dict)
+
+    def get(self, cls: str, stages: int) -> float:
+        o = self.overrides.get(cls)
+        if isinstance(o, (int, float)):
+            return float(o)
+        if isinstance(o, dict) and str(stages) in {str(k) for k in o}:
+            return float({str(k): v for k, v in o.items()}[str(stages)])
+        row = self.table.get(cls, {})
+        v = {str(k): x for k, x in row.items()}.get(str(stages))
+        return self.default if v is None else float(v)
+
+    def passes(self, cls: str, stages: int, score: float) -> bool:
+        return score <= self.get(cls, stages)
+
+    def set(self, cls: str, stages: int, threshold: float) -> None:
+        self.overrides.setdefault(cls, {})
+        if not isinstance(self.overrides[cls], dict):
+            self.overrides[cls] = {}
+        self.overrides[cls][str(stages)] = float(threshold)
+
+    @staticmethod
+    def calibrate(records, target_precision: float = 0.995, meta: dict | None = None) -> "FprThresholds":
+        """From records (cls, stages, belief_sum, correct): per (cls, stages) the threshold of
+        :func:`calibrate_threshold`. Returns the table with per-entry precision/recall in ``meta``."""
+        groups: dict = {}
+        for cls, stages, score, ok in records:
+            groups.setdefault((str(cls), int(stages)), []).append((float(score), bool(ok)))
+        table, stats = {}, {}
+        for (cls, st), rows in sorted(groups.items()):
+            sc, ok = zip(*rows)
+            r = calibrate_threshold(sc, ok, target_precision)
+            table.setdefault(cls, {})[str(st)] = r["threshold"]
+            stats.setdefault(cls, {})[str(st)] = {**r, "n": len(rows), "n_correct": int(sum(ok))}
+        return FprThresholds(table, math.inf, {}, {"target_precision": target_precision, "stats": stats, **(meta or {})})
+
+    def save(self, path) -> None:
+        path = Path(path)
+        enc = lambda t: {c: {s: (None if not math.isfinite(v) else v) if v != -math.inf else "-inf"  # noqa: E731
+                             for s, v in row.items()} for c, row in t.items()}
+        blob = {"table": enc(self.table), "default": None if math.isinf(self.default) else self.default,
+                "overrides": self.overrides, "meta": self.meta}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+        with os.fdopen(fd, "w") as f:
+            json.dump(blob, f, indent=1)
+        os.replace(tmp, path)
+
+    @staticmethod
+    def load(path) -> "FprThresholds":
+        try:
+            with open(path) as f:
+                blob = json.load(f)
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{path}: FPR threshold file not found") from None
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        if "table" not in blob:
+            raise ValueError(f"{path}: expected a 'table' field ({{cls: {{stages: threshold}}}})")
+
+        def dec(v):
+            return -math.inf if v == "-inf" else (math.inf if v is None else float(v))
+        table = {c: {s: dec(v) for s, v in row.items()} for c, row in blob["table"].items()}
+        default = math.inf if blob.get("default") is None else float(blob["default"])
+        return FprThresholds(table, default, blob.get("overrides", {}), blob.get("meta", {}))
+
+
+# --- the detector --------------------------------------------------------------------------------
+
+class DopeDetector:
+    """DOPE + FPR on camera frames: ``detect(frame) -> list[Detection]`` (every stage count at once
+    with ``detect_stages``). Every detection is returned with its FPR verdict in ``fpr_pass``; with
+    ``fpr=False`` all pass.
+
+    weights: path (None = shipped default for ``input``); input: 'rgb' or 'depth'; stages: 1..6;
+    dims: {cls: (3,) cuboid size} (required: the stack does not read the simulator's catalogue);
+    thresholds: FprThresholds, a JSON path, or None (= the shipped file beside the weights);
+    depth_windows: [(near, far), ...] metres for depth input (None = sliding 0.3-1.8 m windows of
+    0.3 m overlapping 0.1 m).
+    """
+
+    def __init__(self, weights=None, input: str = "rgb", stages: int = 6, fpr: bool = True, dims: dict | None = None,
+                 thresholds=None, input_size: tuple[int, int] = (320, 240), peak_threshold: float = 0.1,
+                 angle_threshold: float = 0.5, min_corners: int = 4, max_reproj_px: float = 12.0,
+                 depth_windows=None, device: str | None = None, threads: int | None = None):
+        if input not in ("rgb", "depth"):
+            raise ValueError(f"input must be 'rgb' or 'depth', got {input!r}")
+        if not dims:
+            raise ValueError("DopeDetector needs dims={cls: (w, h, d)} for the cuboids of the classes it detects")
+        self.input = input
+        self.weights_path = Path(weights) if weights is not None else default_weights(input)
+        self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        if threads:
+            torch.set_num_threads(threads)
+        self.model, self.weights_extra = load_weights(self.weights_path, self.device)
+        self.classes = tuple(self.model.classes)
+        if not 1 <= stages <= self.model.config.stages:
+            raise ValueError(f"stages must be 1..{self.model.config.stages}, got {stages}")
+        self.stages = int(stages)
+        self.fpr = bool(fpr)
+        self.dims = {c: np.asarray(d, dtype=float) for c, d in dims.items()}
+        self.input_size = tuple(input_size)
+        self.peak_threshold = peak_threshold
+        self.angle_threshold = angle_threshold
+        self.min_corners = min_corners
+        self.max_reproj_px = max_reproj_px
+        self.depth_windows = list(depth_windows) if depth_windows else sliding_windows(0.3, 1.8, 0.3, 0.1)
+        if isinstance(thresholds, FprThresholds):
+            self.thresholds = thresholds
+        elif thresholds is not None:
+            self.thresholds = FprThresholds.load(thresholds)
+        else:
+            p = self.weights_path.parent / f"fpr_thresholds_{input}.json"
+            self.thresholds = FprThresholds.load(p) if p.exists() else FprThresholds()
+            if not p.exists() and fpr:
+                log.warning("no FPR thresholds beside %s: FPR passes everything until calibrated", self.weights_path)
+
+    # network input -------------------------------------------------------------------------------
+    def _inputs(self, frame: CameraFrame) -> tuple[np.ndarray, list]:
+        """(N, 3, h, w) network inputs and, per input, the depth window (None for RGB)."""
+        w, h = self.input_size
+        if self.input == "rgb":
+            if frame.rgb is None:
+                raise ValueError("DopeDetector(input='rgb') got a CameraFrame without rgb")
+            img = frame.rgb
+            if img.shape[1] != w or img.shape[0] != h:
+                img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+            x = ((img.astype(np.float32) / 255.0 - MEAN) / STD).transpose(2, 0, 1)
+            return x[None], [None]
+        if frame.depth_m is None:
+            raise ValueError("DopeDetector(input='depth') got a CameraFrame without depth_m")
+        d = frame.depth_m
+        if d.shape[1] != w or d.shape[0] != h:
+            d = cv2.resize(d, (w, h), interpolation=cv2.INTER_NEAREST)
+        xs = []
+        for near, far in self.depth_windows:
+            img = preprocess_depth(d, near, far)
+            xs.append(np.repeat(((img - MEAN) / STD)[None], 3, axis=0))
+        return np.stack(xs).astype(np.float32), list(self.depth_windows)
+
+    @torch.no_grad()
+    def _forward(self, x: np.ndarray, stages: int):
+        out = self.model(torch.from_numpy(x).to(self.device), stages)
+        return [(b.float().cpu().numpy(), a.float().cpu().numpy()) for b, a in out]
+
+    # decoding ------------------------------------------------------------------------------------
+    def _decode(self, belief: np.ndarray, affinity: np.ndarray, frame: CameraFrame, stages: int,
+                window) -> list[Detection]:
+        """Detections from one input's maps (belief (C*9,h,w), affinity (C*16,h,w)) at one stage count."""
+        dets = []
+        W, H = frame.info.width, frame.info.height
+        sx, sy = W / self.input_size[0], H / self.input_size[1]
+        for ci, cls in enumerate(self.classes):
+            if cls not in self.dims:
+                continue
+            b = belief[ci * N_BELIEF:(ci + 1) * N_BELIEF]
+            a = affinity[ci * N_AFFINITY:(ci + 1) * N_AFFINITY]
+            if b[8].max() <= self.peak_threshold:
+                continue
+            bsum = belief_sum(b)
+            for obj in associate(b, a, self.peak_threshold, self.angle_threshold, min_corners=self.min_corners):
+                uv_in = to_input_px(obj.points, STRIDE)
+                uv = np.stack([(uv_in[:, 0] + 0.5) * sx - 0.5, (uv_in[:, 1] + 0.5) * sy - 0.5], axis=1)
+                sol = solve_pose(uv, self.dims[cls], frame.info.K)
+                if sol is None:
+                    continue
+                T, err = sol
+                if err > self.max_reproj_px * sx:
+                    continue
+                if window is not None and not (window[0] - 0.05 <= T[2, 3] <= window[1] + 0.05):
+                    continue
+                passed = (not self.fpr) or self.thresholds.passes(cls, stages, bsum)
+                dets.append(Detection(cls=cls, stamp=frame.stamp, T_cam_obj=T, keypoints_px=uv,
+                                      peak_scores=obj.scores.copy(), belief_sum=bsum, stages=stages, fpr_pass=passed,
+                                      extra={"reproj_px": err, "n_keypoints": int(np.isfinite(uv[:, 0]).sum()),
+                                             "input": self.input, "window": window}))
+        return dets
+
+    @staticmethod
+    def _dedupe(dets: list[Detection], radius_m: float = 0.05) -> list[Detection]:
+        """One detection per (class, place) across depth windows: the lowest belief sum wins."""
+        out: list[Detection] = []
+        for d in sorted(dets, key=lambda d: d.belief_sum):
+            if any(o.cls == d.cls and np.linalg.norm(o.T_cam_obj[:3, 3] - d.T_cam_obj[:3, 3]) < radius_m for o in out):
+                continue
+            out.append(d)
+        return out
+
+    def detect_stages(self, frame: CameraFrame, stage_counts=None) -> dict[int, list[Detection]]:
+        """Detections for every stage count (default 1..configured stages) from one forward pass."""
+        counts = sorted(stage_counts or range(1, self.stages + 1))
+        x, windows = self._inputs(frame)
+        outs = self._forward(x, max(counts))
+        result = {}
+        for s in counts:
+            b, a = outs[s - 1]
+            dets = []
+            for i, win in enumerate(windows):
+                dets += self._decode(b[i], a[i], frame, s, win)
+            result[s] = self._dedupe(dets) if len(windows) > 1 else dets
+        return result
+
+    def detect(self, frame: CameraFrame) -> list[Detection]:
+        """Detections (with FPR verdicts) of the configured stage count."""
+        x, windows = self._inputs(frame)
+        b, a = self._forward(x, self.stages)[-1]
+        dets = []
+        for i, win in enumerate(windows):
+            dets += self._decode(b[i], a[i], frame, self.stages, win)
+        return self._dedupe(dets) if len(windows) > 1 else dets

@@ -1,0 +1,50 @@
+"""Depth preprocessing (paper 3.5): slicing, median filters, sharpening, sliding windows."""
+import numpy as np
+import pytest
+
+from stack.depth_window import clean, preprocess_depth, slice_depth, sliding_windows
+
+
+def test_slice_bounds_map_near_far_and_invalid_to_uniform_values():
+    z = np.array([[0.0, 0.5, 0.65, 0.8, 0.95, 1.2]], np.float32)
+    out = slice_depth(z, 0.65, 0.95)
+    assert out[0, 0] == 0.0 and out[0, 1] == 0.0  # no return and too near
+    assert out[0, 2] == pytest.approx(0.1) and out[0, 3] == pytest.approx(0.5) and out[0, 4] == pytest.approx(0.9)
+    assert out[0, 5] == 1.0  # beyond the window
+
+
+def test_median_filters_remove_salt_noise_and_keep_a_step_edge():
+    img = np.zeros((40, 40), np.float32)
+    img[:, 20:] = 0.6  # a depth edge
+    noisy = img.copy()
+    rng = np.random.default_rng(0)
+    ys, xs = rng.integers(0, 40, 60), rng.integers(0, 40, 60)
+    noisy[ys, xs] = 1.0  # salt
+    out = clean(noisy, medians=5, sharpen=False)
+    assert np.abs(out[2:-2, 2:-2] - img[2:-2, 2:-2]).max() < 1e-6
+    sharp = clean(noisy, medians=5, sharpen=True)
+    assert sharp[10, 19] <= 0.0 + 1e-6 and sharp[10, 20] >= 0.6  # edge stays a step (sharpened, not blurred)
+
+
+def test_preprocess_object_stands_out_from_flat_surroundings():
+    depth = np.full((60, 80), 2.0, np.float32)  # wall beyond the window
+    depth[20:40, 30:50] = 0.8  # object in the window
+    depth[::7, ::5] = 0.0  # dropouts
+    out = preprocess_depth(depth, 0.65, 0.95)
+    assert np.allclose(out[25:35, 35:45], 0.1 + 0.8 * 0.5, atol=1e-5)
+    assert out[5, 5] == 1.0
+
+
+def test_bad_window_is_an_error():
+    with pytest.raises(ValueError, match="far"):
+        slice_depth(np.ones((2, 2)), 1.0, 0.5)
+
+
+def test_sliding_windows_cover_the_range_with_overlap():
+    w = sliding_windows(0.3, 1.8, 0.3, 0.1)
+    assert w[0] == (0.3, 0.6) and w[-1][1] >= 1.8
+    for (a0, a1), (b0, b1) in zip(w, w[1:]):
+        assert a1 - b0 == pytest.approx(0.1)
+    # any 10 cm object within range lies wholly inside one window
+    for z in np.linspace(0.3, 1.7, 50):
+        assert any(n <= z and z + 0.1 <= f + 1e-9 for n, f in w)

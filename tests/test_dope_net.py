@@ -1,0 +1,80 @@
+"""The DOPE network: output shapes per stage count, layer counts, weights round trip."""
+import numpy as np
+import pytest
+import torch
+
+from stack.dope_net import N_AFFINITY, N_BELIEF, DopeNet, DopeNetConfig, load_weights, save_weights
+
+
+@pytest.fixture(scope="module")
+def net():
+    torch.manual_seed(0)
+    return DopeNet(DopeNetConfig(width=0.125, stages=6)).eval()
+
+
+@pytest.mark.parametrize("stages", [1, 2, 6])
+def test_outputs_every_stage_with_per_class_maps(net, stages):
+    x = torch.randn(2, 3, 96, 128)
+    with torch.no_grad():
+        out = net(x, stages)
+    assert len(out) == stages
+    n_cls = len(net.classes)
+    for belief, affinity in out:
+        assert belief.shape == (2, n_cls * N_BELIEF, 12, 16)  # output stride 8
+        assert affinity.shape == (2, n_cls * N_AFFINITY, 12, 16)
+
+
+def test_fewer_stages_are_a_prefix_of_the_full_network(net):
+    x = torch.randn(1, 3, 64, 64)
+    with torch.no_grad():
+        full = net(x, 6)
+        two = net(x, 2)
+    for (b6, a6), (b2, a2) in zip(full[:2], two):
+        assert torch.allclose(b6, b2) and torch.allclose(a6, a2)
+
+
+def test_layer_counts_follow_dope_stage_structure(net):
+    # 12 feature convolutions; stage 1: 3x3 x3, 1x1, output; later stages: 7x7 x5, 1x1, output
+    assert net.layer_count(1) == 12 + 5
+    assert net.layer_count(6) == 12 + 5 + 5 * 7
+
+
+def test_bad_stage_count_is_rejected(net):
+    with pytest.raises(ValueError, match="stages must be 1..6"):
+        net(torch.zeros(1, 3, 32, 32), 7)
+
+
+def test_half_precision_weights_round_trip(net, tmp_path):
+    path = tmp_path / "w.pt"
+    save_weights(path, net, half=True, extra={"input": "rgb"})
+    model, extra = load_weights(path)
+    assert extra["input"] == "rgb"
+    x = torch.randn(1, 3, 64, 64)
+    with torch.no_grad():
+        a = net(x)[-1][0]
+        b = model(x)[-1][0]
+    assert float((a - b).abs().max()) < 1e-2 * max(1.0, float(a.abs().max()))
+    blob = torch.load(path, weights_only=True)
+    assert all(v.dtype == torch.float16 for v in blob["state_dict"].values() if v.is_floating_point())
+
+
+def test_loading_a_non_weights_file_names_the_file(tmp_path):
+    bad = tmp_path / "bad.pt"
+    torch.save({"x": torch.zeros(1)}, bad)
+    with pytest.raises(ValueError, match="bad.pt"):
+        load_weights(bad)
+
+
+def test_expand_stages_repeats_the_last_stage():
+    from stack.dope_net import expand_stages
+
+    torch.manual_seed(1)
+    short = DopeNet(DopeNetConfig(width=0.125, stages=2)).eval()
+    long = expand_stages(short, 4).eval()
+    assert long.config.stages == 4
+    for k, v in short.stages[1].state_dict().items():
+        assert torch.equal(long.stages[3].state_dict()[k], v)
+    x = torch.randn(1, 3, 64, 64)
+    with torch.no_grad():
+        a, b = short(x), long(x)
+    assert torch.allclose(a[1][0], b[1][0]) and len(b) == 4
