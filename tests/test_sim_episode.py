@@ -1,0 +1,106 @@
+"""Scripted drive-through episodes: route following through the physics, frame order and ground truth,
+and determinism of ``dopeslam simulate``."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from sim.episode import Episode
+from sim.scenario import load_scenario
+from stack.messages import CameraFrame, LidarScan, WheelOdometry
+from stack.transforms import inv
+from testbed.cli import main as cli_main
+
+
+def test_robot_follows_the_default_route_within_10_cm_of_its_waypoints():
+    sc = load_scenario(None)
+    with Episode(sc, seed=0, camera=False, lidar=False) as ep:  # the whole 60 s: physics only
+        odometry = [m for m in ep.frames() if isinstance(m, WheelOdometry)]
+        follower, gt = ep.follower, ep.groundtruth
+    assert follower.done
+    assert len(follower.closest) == len(sc.route.waypoints)
+    assert np.all(follower.closest < 0.10), follower.closest
+    xy, t = gt.T_world_base[:, :2, 3], gt.stamps
+    # still for the start pause, then driving no faster than the route's speed
+    still = t < sc.route.start_pause
+    assert np.linalg.norm(xy[still] - xy[0], axis=1).max() < 0.01
+    speed = np.linalg.norm(np.diff(xy, axis=0), axis=1) / np.diff(t)
+    assert speed.max() < sc.route.speed * 1.1
+    assert np.linalg.norm(xy[-1] - sc.route.waypoints[-1][:2]) < 0.10
+    # wheel odometry tracks the path but drifts (it is not a copy of the ground truth)
+    assert len(odometry) == pytest.approx(sc.duration * sc.sensors.wheel_odometry_rate, abs=1)
+    T_start = gt.T_world_base[0]
+    true_rel = inv(T_start) @ gt.T_world_base[-1]
+    err = np.linalg.norm(odometry[-1].T_odom_base[:3, 3] - true_rel[:3, 3])
+    path = np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()
+    assert path > 6.0
+    assert 1e-4 < err < 0.2 * path
+
+
+def test_frames_come_in_time_order_with_their_ground_truth_poses():
+    sc = load_scenario(None)
+    sc = sc.model_copy(update={"route": sc.route.model_copy(update={"start_pause": 0.0})})  # drive at once
+    duration = 0.35
+    with Episode(sc, seed=0, duration=duration) as ep:
+        frames = list(ep.frames())
+        # in the order the data becomes available: a scan when its sweep ends (it is stamped at the start)
+        ready = [m.stamp + (ep.beams.period if isinstance(m, LidarScan) else 0.0) for m in frames]
+        assert ready == sorted(ready)
+        kinds = {k: [m for m in frames if isinstance(m, k)] for k in (LidarScan, CameraFrame, WheelOdometry)}
+        assert len(kinds[LidarScan]) == 3  # full sweeps end at 0.1, 0.2, 0.3 s
+        assert len(kinds[CameraFrame]) == 4  # 0.0, 0.1, 0.2, 0.3 s
+        assert len(kinds[WheelOdometry]) == 8  # 20 Hz, 0.0 .. 0.35 s
+        for scan in kinds[LidarScan]:
+            np.testing.assert_allclose(scan.T_world_sensor, ep.T_world_base_at(scan.stamp) @ ep.T_base_velodyne,
+                                       atol=1e-9)
+        for frame in kinds[CameraFrame]:
+            np.testing.assert_allclose(frame.T_world_camera, ep.T_world_base_at(frame.stamp) @ ep.T_base_camera,
+                                       atol=1e-9)
+            assert frame.rgb.shape == (480, 640, 3) and frame.depth_m.shape == (480, 640)
+            assert frame.info.width == 640 and frame.info.fx == pytest.approx(610.0)
+        # map = base_link at the first scan's stamp (the start of its sweep)
+        np.testing.assert_allclose(ep.T_world_map, ep.T_world_base_at(kinds[LidarScan][0].stamp), atol=1e-9)
+        assert np.linalg.norm(ep.groundtruth.T_world_base[-1, :2, 3] - ep.groundtruth.T_world_base[0, :2, 3]) > 0.01
+
+
+def simulate(out, seed: int) -> dict:
+    assert cli_main(["simulate", "--out", str(out), "--seed", str(seed), "--duration", "0.5"]) == 0
+    return json.loads((out / "summary.json").read_text())
+
+
+def test_simulate_is_deterministic_per_seed(tmp_path):
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    summary = simulate(a, 3)
+    simulate(b, 3)
+    simulate(c, 4)
+    for key in ("sim_seconds", "wall_seconds", "real_time_factor", "camera_frames", "lidar_scans",
+                "lidar_points_per_scan"):
+        assert key in summary
+    assert summary["camera_frames"] == 6 and summary["lidar_scans"] == 5
+    assert summary["lidar_points_per_scan"] > 50_000
+    images = sorted(p.name for p in a.glob("*.png") if p.name != "scene_topdown.png")
+    assert any(n.startswith("rgb_") for n in images) and any(n.startswith("depth_") for n in images)
+    assert (a / "scene_topdown.png").stat().st_size > 10_000
+    assert images == sorted(p.name for p in b.glob("*.png") if p.name != "scene_topdown.png")
+
+    def scan(d):
+        with np.load(d / "lidar_scan.npz") as z:
+            return {k: z[k] for k in z.files}
+
+    # one seed: the same bytes
+    assert (a / "groundtruth_tum.txt").read_bytes() == (b / "groundtruth_tum.txt").read_bytes()
+    for name in images:
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    sa, sb, sc_ = scan(a), scan(b), scan(c)
+    assert sa.keys() == sb.keys() == {"points", "times_s", "ring", "intensity", "stamp"}
+    for k in sa:
+        np.testing.assert_array_equal(sa[k], sb[k])
+    # another seed: the same world and motion, different sensor noise
+    assert (a / "groundtruth_tum.txt").read_bytes() == (c / "groundtruth_tum.txt").read_bytes()
+    assert not np.array_equal(sa["points"], sc_["points"])
+    rgb = [n for n in images if n.startswith("rgb_")][0]
+    depth = [n for n in images if n.startswith("depth_")][0]
+    assert (a / rgb).read_bytes() != (c / rgb).read_bytes()
+    assert (a / depth).read_bytes() != (c / depth).read_bytes()
