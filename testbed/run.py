@@ -132,7 +132,10 @@ def make_detector(input_mode: str, stages: int, fpr: bool, weights=None):
 
 def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_mode="rgb", stages=6, fpr=True,
                 policy="robust-mean", duration=None, weights=None, detector=None, dope_every: int = 1,
-                write_outputs: bool = True, keep_detections: bool = False) -> dict:
+                write_outputs: bool = True, keep_detections: bool = False, bag_writer=None,
+                results_bag=None) -> dict:
+    """``bag_writer``: an open ``testbed.bags.BagWriter`` that records the episode as it runs
+    (``testbed/record.py``); ``results_bag``: where the results bag goes (default OUT/results_bag)."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
@@ -142,6 +145,11 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     dims = {c: s.dims for c, s in load_catalog().items()}
     wall0 = time.perf_counter()
     with Episode(scenario, seed=seed, duration=duration, light=light) as ep:
+        recorder = None
+        if bag_writer is not None:
+            from testbed.record import EpisodeRecorder
+
+            recorder = EpisodeRecorder(bag_writer, ep)
         odom = LidarOdometry(ep.T_base_velodyne)
         wheel = WheelOdometryTrack()
         store = ObjectStore(dims=dims, policy=policy)
@@ -174,6 +182,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         for msg in ep.frames():
             now = time.perf_counter()
             timing["simulation"] += now - t_last
+            truths = None
             if isinstance(msg, LidarScan):
                 pose = odom.process(msg)
                 t1 = time.perf_counter()
@@ -190,19 +199,25 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
                     timing["dope"] += t1 - now
                     dlog.seconds += t1 - now
                     dlog.frames += 1
-                    flags = score_detections(dlog, dets, ep.image_truth(msg))
+                    truths = ep.image_truth(msg)
+                    flags = score_detections(dlog, dets, truths)
                     if keep_detections:
                         all_dets.extend(zip(dets, flags))
                     pending.extend(dets)
                 n_cam += 1
             elif isinstance(msg, WheelOdometry):
                 wheel.add(msg)
+            if recorder is not None:
+                recorder.write(msg, truths)
             t_last = time.perf_counter()
             if t_last - last_log > 15:
                 last_log = t_last
                 log.info("t = %5.1f s of %.0f s: %d scans, %d images, %d map objects", msg.stamp, ep.duration,
                          len(odom), dlog.frames, len(store))
         flush(None)
+        if recorder is not None:
+            recorder.finish()
+            timing["recording"] = recorder.seconds
         wall = time.perf_counter() - wall0
         stamps, poses = odom.trajectory()
         T_world_map = ep.T_world_base_at(stamps[0])  # map = base_link at the first registered scan
@@ -226,6 +241,10 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             write_tum(out / "estimate_tum.txt", stamps, T_world_map @ poses)
             write_tum(out / "groundtruth_tum.txt", stamps, ep.T_world_base_at(stamps))
             _map_png(out / "map.png", ep, T_world_map, poses, map_points, labels, report)
+            from testbed.record import RESULTS_BAG_NAME, write_results_bag
+
+            write_results_bag(results_bag or out / RESULTS_BAG_NAME, store, map_points, stamps, poses,
+                              T_world_map=T_world_map, objects=ep.objects)
         if keep_detections:
             report["_detections"] = all_dets
             report["_store"] = store

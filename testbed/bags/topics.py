@@ -20,8 +20,10 @@ WHEEL_ODOM = "/jackal_velocity_controller/odom"
 FILTERED_ODOM = "/odometry/filtered"
 GT_BASE_POSE = "/ground_truth/base_pose"
 GT_OBJECTS = "/ground_truth/objects"
+GT_IMAGE_OBJECTS = "/ground_truth/image_objects"  # per camera frame: each object seen from the camera (JSON)
 LABELS = "/dopeslam/labels"
 MAP = "/dopeslam/map"
+TRAJECTORY = "/dopeslam/trajectory"
 METADATA = "/dopeslam/metadata"
 
 # Frames (DESIGN.md, REP-103/105).

@@ -1,0 +1,75 @@
+"""``dopeslam record [SCENARIO] --bag PATH [--format ros1|ros2] [--storage sqlite3|mcap] --seed N [--duration S]``
+and ``dopeslam replay BAG --out DIR [--lidar-topic T] [--rgb-topic T] [--depth-topic T] [--camera-info-topic T]
+[--input rgb|depth] [--fpr/--no-fpr] [--stages 1-6] [--weights W] [--policy P]``."""
+from __future__ import annotations
+
+from testbed.commands.run import add_dope_options
+
+
+def register(sub) -> None:
+    p = sub.add_parser("record", help="record an episode to a rosbag (driver topics + ground truth)")
+    p.add_argument("scenario", nargs="?", default=None, help="bundled name or TOML path (default: the default scenario)")
+    p.add_argument("--bag", required=True, help="output bag: ROS 1 'NAME.bag' file or ROS 2 directory")
+    p.add_argument("--format", choices=["ros1", "ros2"], default=None,
+                   help="default: ros1 when --bag ends in .bag, else ros2")
+    p.add_argument("--storage", choices=["sqlite3", "mcap"], default="mcap", help="ROS 2 storage (default mcap)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
+    p.add_argument("--light", type=float, default=None, help="override the scenario's light level (0-1)")
+    p.add_argument("--force", action="store_true", help="replace an existing bag")
+    p.set_defaults(func=record)
+
+    p = sub.add_parser("replay", help="run the stack offline on a rosbag (ours or a real robot's): "
+                                      "odometry pass, DOPE pass, fusion; report, labels.xlsx, map.png")
+    p.add_argument("bag", help="ROS 1 .bag file, ROS 2 bag directory, or .mcap/.db3 file")
+    p.add_argument("--out", default="out/replay")
+    p.add_argument("--lidar-topic", default=None, help="PointCloud2 topic (default /velodyne_points or the only one)")
+    p.add_argument("--rgb-topic", default=None, help="colour Image/CompressedImage topic")
+    p.add_argument("--depth-topic", default=None, help="depth Image topic, aligned to colour (16UC1 mm or 32FC1 m)")
+    p.add_argument("--camera-info-topic", default=None, help="CameraInfo of the colour stream")
+    p.add_argument("--policy", default="robust-mean", help="labelling policy: last, last-fpr, best-score, robust-mean, ...")
+    p.add_argument("--dope-every", type=int, default=1, help="run DOPE on every N-th image")
+    p.add_argument("--sequential", action="store_true",
+                   help="run the odometry and DOPE passes one after the other (default: at the same time)")
+    p.add_argument("--results-bag", default=None, help="where the results bag goes (default OUT/results_bag)")
+    add_dope_options(p)
+    p.set_defaults(func=replay)
+
+
+def record(args) -> int:
+    import json
+
+    from testbed.record import record_episode
+
+    if args.format == "ros1" and not args.bag.endswith(".bag"):
+        raise SystemExit(f"--bag {args.bag}: a ROS 1 bag's name must end in .bag")
+    if args.format == "ros2" and args.bag.endswith(".bag"):
+        raise SystemExit(f"--bag {args.bag}: a ROS 2 bag is a directory; its name must not end in .bag")
+    summary = record_episode(args.scenario, args.bag, args.format, args.storage, args.seed, args.duration,
+                             args.light, overwrite=args.force)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def replay(args) -> int:
+    from stack.object_store import POLICIES
+    from testbed.bags import BagError
+    from testbed.replay import BagTopics, print_replay_summary, replay_bag
+
+    if args.policy not in POLICIES:
+        raise SystemExit(f"--policy: expected one of {sorted(POLICIES)}, got {args.policy!r}")
+    if args.dope_every < 1:
+        raise SystemExit(f"--dope-every: expected an integer >= 1, got {args.dope_every}")
+    topics = BagTopics(args.lidar_topic, args.rgb_topic, args.depth_topic, args.camera_info_topic)
+    try:
+        report = replay_bag(args.bag, args.out, input_mode=args.input_mode, stages=args.stages, fpr=args.fpr,
+                            weights=args.weights, policy=args.policy, topics=topics, dope_every=args.dope_every,
+                            parallel=not args.sequential, results_bag=args.results_bag)
+    except BagError as exc:
+        raise SystemExit(f"error: {exc}") from None
+    print_replay_summary(report)
+    print(f"wrote {args.out}/report.json, labels.xlsx, labels.json, map.png, estimate_tum.txt"
+          + (", groundtruth_tum.txt" if report["ground_truth"]["trajectory"] else "")
+          + f", {args.results_bag or args.out + '/results_bag'}")
+    return 0
+

@@ -1,0 +1,223 @@
+"""``dopeslam record``: an episode into a rosbag, with the topics the real drivers publish and the
+simulator's ground truth on topics of its own; and the stack's results into a bag after a run.
+
+What a recorded bag holds (topic names in ``testbed/bags/topics.py``):
+
+* the robot: ``/velodyne_points``, the colour and aligned-depth images with their camera_info,
+  ``/tf_static`` (base_link -> velodyne, base_link -> camera_color_optical_frame), wheel odometry
+  and its ``/tf``;
+* ground truth: base_link in ``world`` at every physics step (``/ground_truth/base_pose``), the
+  objects' cuboids (``/ground_truth/objects``), and per camera frame the objects as the camera sees
+  them (``/ground_truth/image_objects``: pose in the camera, visible fraction; what detection
+  scoring needs, since a bag has no segmentation image);
+* ``/dopeslam/metadata``: scenario, seed, light, the scenario itself.
+
+:class:`EpisodeRecorder` streams an episode while it runs, so ``run_episode`` records the episode
+it is scoring (``bag_writer=``) and ``record_episode`` records one without running the stack.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import platform
+import time
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from stack.messages import CameraFrame, LidarScan, WheelOdometry
+from testbed.bags import BagWriter, Cuboid, bag_size
+from testbed.bags import topics as T
+
+log = logging.getLogger(__name__)
+
+RESULTS_BAG_NAME = "results_bag"  # under a run's output folder: a ROS 2 bag (MCAP) of the stack's results
+MAP_VOXEL_M = 0.05  # the results bag's LiDAR map is thinned to one point per voxel of this size
+
+
+# --- per-image ground truth ------------------------------------------------------------------
+
+def _floats(a: Any) -> list:
+    """A flat list of floats for JSON, NaN as null (JSON has no NaN)."""
+    return [None if not math.isfinite(v) else float(v) for v in np.asarray(a, dtype=float).ravel()]
+
+
+def image_truth_json(stamp: float, truths: Sequence[dict]) -> str:
+    """``Episode.image_truth`` of one frame as the JSON carried by ``/ground_truth/image_objects``."""
+    objects = [{"name": t["name"], "cls": t["cls"], "T_cam_obj": _floats(t["T_cam_obj"]),
+                "keypoints_px": _floats(t["keypoints_px"]), "in_front": bool(t["in_front"]),
+                "visible_fraction": float(t["visible_fraction"]), "distance_m": float(t["distance_m"])}
+               for t in truths]
+    return json.dumps({"stamp": float(stamp), "frame_id": T.CAMERA, "objects": objects}, separators=(",", ":"))
+
+
+def image_truth_from_json(text: str) -> tuple[float, list[dict]]:
+    """(stamp, truths) with the fields and types ``Episode.image_truth`` gives."""
+    data = json.loads(text)
+    out = []
+    for o in data["objects"]:
+        out.append({"name": o["name"], "cls": o["cls"],
+                    "T_cam_obj": np.array(o["T_cam_obj"], dtype=float).reshape(4, 4),
+                    "keypoints_px": np.array([np.nan if v is None else v for v in o["keypoints_px"]],
+                                             dtype=float).reshape(-1, 2),
+                    "in_front": bool(o["in_front"]), "visible_fraction": float(o["visible_fraction"]),
+                    "distance_m": float(o["distance_m"])})
+    return float(data["stamp"]), out
+
+
+def write_image_truth(writer: BagWriter, stamp: float, truths: Sequence[dict]) -> None:
+    msg = writer.dialect.make("std_msgs/msg/String", data=image_truth_json(stamp, truths))
+    writer.write_message(T.GT_IMAGE_OBJECTS, "std_msgs/msg/String", stamp, msg)
+
+
+# --- the episode -------------------------------------------------------------------------------
+
+def episode_metadata(ep) -> dict:
+    """Facts of a recorded episode for ``/dopeslam/metadata``."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def ver(pkg: str) -> str | None:
+        try:
+            return version(pkg)
+        except PackageNotFoundError:
+            return None
+
+    sc = ep.sc
+    return {"source": "dopeslam record (simulation)", "scenario": sc.name, "scenario_file": sc.source,
+            "seed": ep.seed, "duration_s": ep.duration, "light": ep.light, "renderer": ep.renderer,
+            "scenario_config": sc.model_dump(mode="json"),
+            "versions": {"dopeslam-testbed": ver("dopeslam-testbed"), "rosbags": ver("rosbags"),
+                         "pybullet": ver("pybullet"), "python": platform.python_version()}}
+
+
+class EpisodeRecorder:
+    """Streams an :class:`~sim.episode.Episode` into an open :class:`BagWriter`.
+
+    Call ``write(msg)`` for every message of ``ep.frames()`` as it comes, then ``finish()``.
+    The first ``write`` puts the latched topics first (metadata, ``/tf_static``, the objects'
+    ground truth); each ``write`` adds the base poses the episode has produced since the last one,
+    and for a camera frame the per-image ground truth (``truths``: ``ep.image_truth(frame)`` when
+    the caller has it already, else it is computed). ``seconds`` is the wall time spent here.
+    """
+
+    def __init__(self, writer: BagWriter, ep, image_truth: bool = True):
+        self.writer = writer
+        self.ep = ep
+        self.image_truth = image_truth
+        self.seconds = 0.0
+        self._gt_written = 0
+        self._started = False
+
+    def start(self) -> None:
+        if self._started:
+            return
+        self._started = True
+        ep, w = self.ep, self.writer
+        w.write_metadata(0.0, episode_metadata(ep))
+        w.write_extrinsics(ep.T_base_velodyne, ep.T_base_camera, stamp=0.0,
+                           camera_frame=ep.camera_info.frame_id)
+        w.write_ground_truth_objects(0.0, ep.objects)
+
+    def write(self, msg: LidarScan | CameraFrame | WheelOdometry, truths: Sequence[dict] | None = None) -> None:
+        t0 = time.perf_counter()
+        self.start()
+        self._write_ground_truth_poses()
+        self.writer.write(msg)
+        if self.image_truth and isinstance(msg, CameraFrame):
+            write_image_truth(self.writer, msg.stamp, self.ep.image_truth(msg) if truths is None else truths)
+        self.seconds += time.perf_counter() - t0
+
+    def finish(self) -> None:
+        t0 = time.perf_counter()
+        self.start()
+        self._write_ground_truth_poses()
+        self.seconds += time.perf_counter() - t0
+
+    def _write_ground_truth_poses(self) -> None:
+        gt = self.ep.groundtruth
+        stamps, poses = gt.base_stamps, gt.base_poses
+        for k in range(self._gt_written, len(stamps)):
+            self.writer.write_ground_truth_pose(stamps[k], poses[k])
+        self._gt_written = len(stamps)
+
+
+def record_episode(scenario=None, bag: Path | str = "out/episode", format: str | None = None,
+                   storage: str = "mcap", seed: int | None = None, duration: float | None = None,
+                   light: float | None = None, overwrite: bool = False, compress: bool = True) -> dict:
+    """Run an episode (no stack) and write it to ``bag``; returns a summary with the timing."""
+    from sim.episode import Episode
+
+    bag = Path(bag)
+    wall0 = time.perf_counter()
+    with Episode(scenario, seed=seed, duration=duration, light=light) as ep:
+        writer = BagWriter(bag, format, storage, compress=compress, overwrite=overwrite)
+        with writer:
+            rec = EpisodeRecorder(writer, ep)
+            last_log = time.perf_counter()
+            for msg in ep.frames():
+                rec.write(msg)
+                if time.perf_counter() - last_log > 15:
+                    last_log = time.perf_counter()
+                    log.info("recording t = %5.1f s of %.0f s (%d messages)", msg.stamp, ep.duration,
+                             sum(writer.counts.values()))
+            rec.finish()
+        wall = time.perf_counter() - wall0
+        return {"bag": str(bag), "format": writer.describe(), "scenario": ep.sc.name, "seed": ep.seed,
+                "sim_seconds": ep.sim_seconds, "wall_seconds": wall, "recording_seconds": rec.seconds,
+                "recording_share": rec.seconds / wall if wall > 0 else None,
+                "bytes": bag_size(bag), "messages": dict(sorted(writer.counts.items()))}
+
+
+# --- the stack's results -------------------------------------------------------------------------
+
+def voxel_thin(points: np.ndarray, voxel_m: float = MAP_VOXEL_M) -> np.ndarray:
+    """The first point in each voxel of size ``voxel_m`` (order kept)."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(points) == 0:
+        return points
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def store_cuboids(store) -> list[Cuboid]:
+    """The object store's labels as cuboids in ``map`` (name ``<class>_<id>``)."""
+    return [Cuboid(f"{m.cls}_{m.id}", m.cls, m.T_map_obj, np.asarray(m.size, dtype=float)) for m in store]
+
+
+def write_results_bag(path: Path | str, store, map_points: Iterable[np.ndarray] | np.ndarray | None,
+                      stamps: np.ndarray, T_map_base: np.ndarray, *, T_world_map: np.ndarray | None = None,
+                      objects=None, format: str | None = None, storage: str = "mcap",
+                      overwrite: bool = True) -> Path:
+    """The stack's results as a bag RViz or Foxglove shows as an annotated map (fixed frame ``map``).
+
+    ``/dopeslam/labels`` (MarkerArray: one cuboid per stored object), ``/dopeslam/map`` (the LiDAR
+    map, PointCloud2, thinned to ``MAP_VOXEL_M`` voxels), ``/dopeslam/trajectory`` (nav_msgs/Path of
+    base_link). With ``T_world_map`` also ``/tf_static`` world -> map, and with ``objects`` the true
+    cuboids on ``/ground_truth/objects``, so labels and truth can be seen side by side.
+    """
+    path = Path(path)
+    stamps = np.asarray(stamps, dtype=float)
+    end = float(stamps[-1]) if len(stamps) else 0.0
+    if map_points is None:
+        pts = np.zeros((0, 3))
+    elif isinstance(map_points, np.ndarray):
+        pts = map_points.reshape(-1, 3)
+    else:
+        chunks = [np.asarray(p).reshape(-1, 3) for p in map_points]
+        pts = np.vstack(chunks) if chunks else np.zeros((0, 3))
+    with BagWriter(path, format, storage, overwrite=overwrite) as w:
+        if T_world_map is not None:
+            w.write_tf_static(end, [(T.WORLD, T.MAP_FRAME, np.asarray(T_world_map, dtype=float))])
+        w.write_labels(end, store_cuboids(store))
+        w.write_map(end, voxel_thin(pts))
+        d = w.dialect
+        poses = [d.make("geometry_msgs/msg/PoseStamped", header=d.header(int(round(t * 1e9)), T.MAP_FRAME),
+                        pose=d.pose(P)) for t, P in zip(stamps, np.asarray(T_map_base).reshape(-1, 4, 4))]
+        path_msg = d.make("nav_msgs/msg/Path", header=d.header(int(round(end * 1e9)), T.MAP_FRAME), poses=poses)
+        w.write_message(T.TRAJECTORY, "nav_msgs/msg/Path", end, path_msg, latched=True)
+        if objects is not None:
+            w.write_ground_truth_objects(end, objects)
+    return path
