@@ -169,6 +169,7 @@ def save_weights(path, model: DopeNet, half: bool = True, extra: dict | None = N
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     os.close(fd)
     torch.save(blob, tmp)
+    os.chmod(tmp, 0o644)
     os.replace(tmp, path)
 
 

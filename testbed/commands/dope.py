@@ -86,6 +86,19 @@ def _calibrate(args) -> int:
     return 0
 
 
+def _export(args) -> int:
+    from stack.dope_net import expand_stages, load_weights, save_weights
+
+    model, extra = load_weights(args.src)
+    if args.stages and args.stages != model.config.stages:
+        extra["trained_stages"] = model.config.stages
+        model = expand_stages(model, args.stages)
+    extra.update({"source": str(args.src)})
+    save_weights(args.out, model, half=True, extra=extra)
+    print(f"{args.out}: {model.config.stages} stages, width {model.config.width}, classes {list(model.classes)}")
+    return 0
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("datagen", help="render synthetic DOPE training data (RGB, depth, segmentation, cuboid annotations)")
     p.add_argument("--out", required=True, help="output directory for shard_NNNNN.npz/.json")
@@ -115,6 +128,12 @@ def register(subparsers) -> None:
     t.add_argument("--threads", type=int, default=0)
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_train)
+
+    x = subparsers.add_parser("dope-export", help="export run weights (half precision, optionally expanded to more stages)")
+    x.add_argument("--src", required=True, help="weights_fp16.pt of a training run")
+    x.add_argument("--out", required=True, help="e.g. stack/weights/dope_rgb.pt")
+    x.add_argument("--stages", type=int, default=6, help="repeat the last trained stage up to this many stages")
+    x.set_defaults(func=_export)
 
     for name, func, helptext in (("dope-eval", _evaluate, "DOPE accuracy per stage count on held-out datagen shards"),
                                  ("calibrate-fpr", _calibrate, "calibrate FPR belief-sum thresholds per class and stage count")):

@@ -1,0 +1,71 @@
+"""The shipped weights on rendered frames: an object in view is found with a small position error;
+the detector's interface (stage counts, FPR verdicts, inputs) behaves as the harness expects."""
+import numpy as np
+import pytest
+
+from stack.dope_fpr import DopeDetector, FprThresholds, default_weights
+from stack.messages import CameraFrame
+
+pytestmark = pytest.mark.skipif(not default_weights("rgb").exists(), reason="no shipped RGB weights")
+
+
+def _render(cls="E", distance=0.8, light=1.0, seed=0):
+    import pybullet as p
+
+    from sim.camera import default_camera_info, new_client, render_rgbd
+    from sim.objects import load_catalog, spawn_object
+
+    cat = load_catalog()
+    client, _ = new_client("tiny")
+    floor = p.createVisualShape(p.GEOM_BOX, halfExtents=[5, 5, 0.05], rgbaColor=[0.55, 0.55, 0.5, 1],
+                                physicsClientId=client)
+    p.createMultiBody(0, -1, floor, [0, 0, -0.05], physicsClientId=client)
+    stand = p.createVisualShape(p.GEOM_BOX, halfExtents=[0.12, 0.12, 0.15], rgbaColor=[0.3, 0.3, 0.35, 1],
+                                physicsClientId=client)
+    p.createMultiBody(0, -1, stand, [distance, 0, 0.15], physicsClientId=client)
+    T_world_obj = cat[cls].standing_pose([distance, 0.0, 0.30], np.pi + 0.35)
+    spawn_object(client, cat[cls], T_world_obj)
+    T_world_cam = np.eye(4)
+    T_world_cam[:3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)
+    T_world_cam[:3, 3] = [0, 0, 0.33]
+    info = default_camera_info()
+    rgb, depth, _ = render_rgbd(client, T_world_cam, info, light=light, rng=np.random.default_rng(seed))
+    p.disconnect(client)
+    dims = {c: s.dims for c, s in cat.items()}
+    return CameraFrame(0.0, info, rgb=rgb, depth_m=depth), np.linalg.inv(T_world_cam) @ T_world_obj, dims
+
+
+@pytest.mark.slow
+def test_shipped_rgb_weights_find_the_object_within_3_cm():
+    frame, T_cam_obj, dims = _render("E", 0.8)
+    det = DopeDetector(input="rgb", stages=6, fpr=False, dims=dims)
+    found = [d for d in det.detect(frame) if d.cls == "E"]
+    assert found, "no E detected"
+    err = min(np.linalg.norm(d.T_cam_obj[:3, 3] - T_cam_obj[:3, 3]) for d in found)
+    assert err < 0.03
+
+
+@pytest.mark.slow
+def test_every_stage_count_from_one_pass_and_fpr_verdicts():
+    frame, _, dims = _render("Mustard", 1.0)
+    det = DopeDetector(input="rgb", stages=6, fpr=True, dims=dims, thresholds=FprThresholds({}, default=-1.0))
+    by_stage = det.detect_stages(frame)
+    assert sorted(by_stage) == [1, 2, 3, 4, 5, 6]
+    for s, dets in by_stage.items():
+        for d in dets:
+            assert d.stages == s and not d.fpr_pass  # threshold below any sum: nothing passes
+            assert d.keypoints_px.shape == (9, 2) and d.peak_scores.shape == (9,) and d.belief_sum > 0
+
+
+@pytest.mark.slow
+def test_rgb_in_the_dark_finds_nothing():
+    frame, _, dims = _render("E", 0.8, light=0.0)
+    det = DopeDetector(input="rgb", stages=6, fpr=False, dims=dims)
+    assert det.detect(frame) == []
+
+
+def test_missing_dims_or_bad_input_are_errors():
+    with pytest.raises(ValueError, match="dims"):
+        DopeDetector(input="rgb")
+    with pytest.raises(ValueError, match="input"):
+        DopeDetector(input="thermal", dims={"E": (0.1, 0.14, 0.035)})
