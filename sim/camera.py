@@ -103,10 +103,13 @@ def render_raw(client: int, T_world_cam: np.ndarray, info: CameraInfo, renderer:
         info.width, info.height, view, proj, renderer=renderer, lightDirection=list(light_direction),
         shadow=int(shadow), physicsClientId=client)
     rgb = np.ascontiguousarray(np.asarray(rgba, dtype=np.uint8).reshape(info.height, info.width, 4)[..., :3])
-    zbuf = np.asarray(zbuf, dtype=np.float64).reshape(info.height, info.width)
-    # depth buffer -> distance along the optical axis
-    depth = (FAR * NEAR / (FAR - (FAR - NEAR) * zbuf)).astype(np.float32)
-    depth[zbuf >= 1.0] = 0.0
+    zbuf = np.asarray(zbuf, dtype=np.float32).reshape(info.height, info.width)
+    # depth buffer -> distance along the optical axis: near * far / (far - (far - near) * zbuf), written
+    # as far * (1 - zbuf) + near * zbuf so float32 does not cancel where zbuf is near 1 (far surfaces)
+    den = np.float32(1.0) - zbuf
+    den *= np.float32(FAR)
+    den += np.float32(NEAR) * zbuf
+    depth = np.divide(np.float32(FAR * NEAR), den, out=np.zeros_like(den), where=zbuf < 1.0)
     segm = np.asarray(seg, dtype=np.int32).reshape(info.height, info.width)
     return rgb, depth, segm
 
