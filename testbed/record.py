@@ -99,7 +99,8 @@ class EpisodeRecorder:
     The first ``write`` puts the latched topics first (metadata, ``/tf_static``, the objects'
     ground truth); each ``write`` adds the base poses the episode has produced since the last one,
     and for a camera frame the per-image ground truth (``truths``: ``ep.image_truth(frame)`` when
-    the caller has it already, else it is computed). ``seconds`` is the wall time spent here.
+    the caller has it already, else it is computed). ``seconds`` is the wall time spent here,
+    ``cpu_seconds`` the CPU time of this thread spent here.
     """
 
     def __init__(self, writer: BagWriter, ep, image_truth: bool = True):
@@ -107,6 +108,7 @@ class EpisodeRecorder:
         self.ep = ep
         self.image_truth = image_truth
         self.seconds = 0.0
+        self.cpu_seconds = 0.0
         self._gt_written = 0
         self._started = False
 
@@ -121,19 +123,21 @@ class EpisodeRecorder:
         w.write_ground_truth_objects(0.0, ep.objects)
 
     def write(self, msg: LidarScan | CameraFrame | WheelOdometry, truths: Sequence[dict] | None = None) -> None:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         self.start()
         self._write_ground_truth_poses()
         self.writer.write(msg)
         if self.image_truth and isinstance(msg, CameraFrame):
             write_image_truth(self.writer, msg.stamp, self.ep.image_truth(msg) if truths is None else truths)
         self.seconds += time.perf_counter() - t0
+        self.cpu_seconds += time.thread_time() - c0
 
     def finish(self) -> None:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         self.start()
         self._write_ground_truth_poses()
         self.seconds += time.perf_counter() - t0
+        self.cpu_seconds += time.thread_time() - c0
 
     def _write_ground_truth_poses(self) -> None:
         gt = self.ep.groundtruth
@@ -166,6 +170,7 @@ def record_episode(scenario=None, bag: Path | str = "out/episode", format: str |
         wall = time.perf_counter() - wall0
         return {"bag": str(bag), "format": writer.describe(), "scenario": ep.sc.name, "seed": ep.seed,
                 "sim_seconds": ep.sim_seconds, "wall_seconds": wall, "recording_seconds": rec.seconds,
+                "recording_cpu_seconds": rec.cpu_seconds,
                 "recording_share": rec.seconds / wall if wall > 0 else None,
                 "bytes": bag_size(bag), "messages": dict(sorted(writer.counts.items()))}
 

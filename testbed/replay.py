@@ -196,7 +196,7 @@ def open_bag(path, topics: BagTopics, input_mode: str, need_camera: bool = True)
         if have is None:
             bag.close()
             other = "--input depth" if input_mode == "rgb" else "--input rgb"
-            raise MissingTopicError(bag.path, input_mode, f"an {input_mode} image topic for --input {input_mode}",
+            raise MissingTopicError(bag.path, input_mode, f"a {input_mode} image topic (for --input {input_mode})",
                                     bag.topics, f"pass --{input_mode}-topic, or {other}")
     return bag
 
