@@ -9,8 +9,8 @@
 3. Replay: ``replay_bag`` on that bag with the real DOPE detector (the shipped weights), both passes
    at the same time (default) and one after the other; wall seconds per second of data. Target <= 1x.
 
-    python benchmarks/bench_bags.py [--duration 10] [--repeats 2] [--bag-seconds 60] [--keep DIR]
-                                    [--skip-dope] [--json benchmarks/results/bags.json]
+    python benchmarks/bench_bags.py [--duration 10] [--repeats 2] [--bag-seconds 60] [--keep DIR [--reuse-bag]]
+                                    [--skip-overhead] [--skip-dope] [--json benchmarks/results/bags.json]
 
 Wall times depend on what else runs: the load average is printed before and after.
 """
@@ -142,6 +142,7 @@ def main(argv=None) -> int:
     ap.add_argument("--bag-seconds", type=float, default=60.0, help="length of the size/replay bag")
     ap.add_argument("--keep", default=None, help="keep the bag and replay outputs in this folder")
     ap.add_argument("--skip-overhead", action="store_true")
+    ap.add_argument("--reuse-bag", action="store_true", help="with --keep: replay the bag an earlier run left there")
     ap.add_argument("--skip-dope", action="store_true", help="replay without DOPE (e.g. no weights yet)")
     ap.add_argument("--modes", default="parallel,sequential", help="replay modes to time")
     ap.add_argument("--json", default=None, help="also write the results here")
@@ -169,8 +170,12 @@ def main(argv=None) -> int:
                   f"episode's CPU; {o['recording_wall_s']:.2f} wall s = {o['recording_wall_pct']:.1f} % of its wall "
                   f"(target <= 20 %)")
         bag = work / "default_episode"
-        shutil.rmtree(bag, ignore_errors=True)
-        s = bench_size(args.bag_seconds, bag)
+        if args.reuse_bag and (work / "size.json").exists() and bag.exists():
+            s = json.loads((work / "size.json").read_text())  # recorded by an earlier run with --keep
+        else:
+            shutil.rmtree(bag, ignore_errors=True)
+            s = bench_size(args.bag_seconds, bag)
+            (work / "size.json").write_text(json.dumps(s, indent=2))
         results["size"] = s
         print()
         print(f"Bag of the default episode ({s['sim_seconds']:g} s, {s['format']}): {s['bytes'] / 1e6:.0f} MB "
