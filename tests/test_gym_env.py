@@ -296,3 +296,56 @@ def test_active_envs_each_own_a_pybullet_client():
         assert obs["slots"].shape == (2, 12, 23)
     finally:
         venv.close()
+
+
+# --- evaluate-policy and the SB3 example -------------------------------------------------------------
+
+@pytest.mark.slow
+def test_evaluate_policy_writes_json_and_a_table_two_like_the_paper(cache, tmp_path):
+    from testbed.commands.policy import evaluate, write_outputs
+
+    kw = {k: v for k, v in env_kwargs(cache).items() if k not in ("scenario", "seeds")}
+    result = evaluate(list(BASELINES), [SCENE], [0, 1], kw)
+    j, t = write_outputs(result, tmp_path)
+    doc = json.loads(j.read_text())
+    g = doc["by_policy"]["robust-mean"][SCENE]
+    assert g["episodes"] == 2 and g["objects"] == 6
+    assert set(g["mean_error_cm"]) == {"mean", "std", "n"} and g["mean_error_cm"]["n"] == 2
+    assert len(doc["runs"]) == 2 * len(BASELINES)
+    # the same episode scored directly agrees with the table's per-seed run
+    env = gymnasium.make("DopeSlamLabelling-v0", **env_kwargs(cache))
+    direct = run_policy(env, "last", 1)["summary"]
+    row = next(r for r in doc["runs"] if r["policy"] == "last" and r["seed"] == 1)
+    assert row["mean_error_m"] == pytest.approx(direct["mean_error_m"]) and row["false_labels"] == direct["false_labels"]
+    assert doc["targets"][SCENE]["best_non_oracle"] == min(
+        (n for n in BASELINES if not n.startswith("oracle")),
+        key=lambda n: doc["by_policy"][n][SCENE]["mean_error_cm"]["mean"])
+    table = t.read_text()
+    assert "| last | original |" in table and "| oracle-worst | worst |" in table
+
+
+def test_evaluate_policy_rejects_an_unknown_policy(tmp_path):
+    from testbed.cli import main
+
+    with pytest.raises(SystemExit, match="unknown policy 'newest'"):
+        main(["evaluate-policy", "newest", "--episodes", "1", "--out", str(tmp_path)])
+
+
+@pytest.mark.slow
+def test_sb3_example_trains_and_reports_against_the_baselines(cache, tmp_path):
+    pytest.importorskip("stable_baselines3")
+    import importlib.util
+
+    path = Path(__file__).parents[1] / "examples" / "train_sb3_policy.py"
+    spec = importlib.util.spec_from_file_location("train_sb3_policy", path)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    report = example.run(SCENE, [0], [1], timesteps=512, duration=DURATION, detector="double", cache=str(cache),
+                         out=tmp_path, n_envs=1)
+    assert set(report["policies"]) == {"ppo", *BASELINES}
+    assert report["policies"]["ppo"]["return"][0] is not None
+    assert (tmp_path / "ppo_policy.pt").exists() and (tmp_path / "obs_normalisation.json").exists()
+    import torch
+
+    state = torch.load(tmp_path / "ppo_policy.pt", weights_only=True)
+    assert any(k.endswith("weight") for k in state)

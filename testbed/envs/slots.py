@@ -95,6 +95,7 @@ class SlotMap:
         self._det0 = self._col["det_x"]
         self._lab0 = self._col["has_label"]
         self._obs = np.zeros((N, len(names)), dtype=np.float32)
+        self._minus_ones = np.full(N, -1.0)
 
     # --- association -------------------------------------------------------------------------------
     def observe(self, dets: dict, lo: int, hi: int, stage: int) -> None:
@@ -160,15 +161,18 @@ class SlotMap:
     def act(self, labels: np.ndarray) -> float:
         """Apply per-slot actions to the current detections; returns the decrease of the cost."""
         changed = []
+        if not self._present:
+            return 0.0
         dets = self.dets
+        labels = labels.tolist() if hasattr(labels, "tolist") else list(labels)
         for j in self._present:
             a = labels[j]
             if a == IGNORE:
                 continue
-            i = self.cur[j]
+            i = int(self.cur[j])
             if a == REPLACE or not self.has[j]:
                 self.ev_n[j] = 0
-            n = self.ev_n[j]
+            n = int(self.ev_n[j])
             if n == self._ev.shape[1]:
                 self._ev = np.concatenate([self._ev, np.zeros_like(self._ev)], axis=1)
                 self._ev_belief = np.concatenate([self._ev_belief, np.zeros_like(self._ev_belief)], axis=1)
@@ -190,29 +194,46 @@ class SlotMap:
             lx, ly, lz = self.label[j]
             o[j, L:L + 6] = (1.0, lx, ly, lz, math.log1p(self.ev_n[j]), _bounded(self.label_belief[j]))
         before = self.cost
-        self.cost = self._cost()
+        self.cost = self._cost(changed)
         return before - self.cost
 
     # --- cost / score ------------------------------------------------------------------------------
-    def _cost(self) -> float:
-        """The map's cost, matching objects to labels as ``testbed.run.score_labels`` does."""
+    def _cost(self, changed=()) -> float:
+        """The map's cost, matching objects to labels as ``testbed.run.score_labels`` does: each true
+        object in turn takes the nearest unused label of its class. ``changed``: slots whose label
+        moved since the last call (their column of the distance table is recomputed)."""
         r = self.reward
-        labelled = np.flatnonzero(self.has)
         K = len(self.truth_cls)
-        self.label_err.fill(np.nan)
-        if not len(labelled):
+        if not hasattr(self, "_D"):
+            self._D = [[math.inf] * self.N for _ in range(K)]
+            self._truth = self.truth_xyz.tolist()
+            self._truth_cls = self.truth_cls.tolist()
+        D = self._D
+        for j in changed:
+            lx, ly, lz = self.label[j].tolist()
+            c = int(self.cls[j])
+            best = math.inf
+            for k in range(K):
+                if self._truth_cls[k] == c:
+                    tx, ty, tz = self._truth[k]
+                    e = math.sqrt((tx - lx) ** 2 + (ty - ly) ** 2 + (tz - lz) ** 2)
+                    best = min(best, e)
+                else:
+                    e = math.inf
+                D[k][j] = e
+            self.label_err[j] = best
+        labelled = [j for j in range(self.N) if self.has[j]]
+        if not labelled:
             return K * r.missing_cost_m
-        D = np.sqrt(((self.truth_xyz[:, None, :] - self.label[None, labelled, :]) ** 2).sum(axis=2))
-        D[self.truth_cls[:, None] != self.cls[None, labelled]] = np.inf
-        self.label_err[labelled] = D.min(axis=0)
-        rows = D.tolist()
         used = set()
         cost, matched = 0.0, 0
         for k in range(K):
+            row = D[k]
             best, m = math.inf, -1
-            for col, e in enumerate(rows[k]):
-                if e < best and col not in used:
-                    best, m = e, col
+            for j in labelled:
+                e = row[j]
+                if e < best and j not in used:
+                    best, m = e, j
             if m < 0:
                 cost += r.missing_cost_m
                 continue
@@ -238,7 +259,7 @@ class SlotMap:
         """(distance to truth of each slot's current detection, of each slot's label); -1 where there is
         none (not NaN: gymnasium's determinism check compares infos with ==). A distance is to the
         nearest true object of the class, inf when the scene has none of that class."""
-        det_err = np.full(self.N, -1.0)
+        det_err = self._minus_ones.copy()
         if self._present:
             errs = self.dets["err_list"]
             for j in self._present:
@@ -273,11 +294,19 @@ def _median(a: np.ndarray) -> np.ndarray:
 
 def _robust_mean(P: np.ndarray, beliefs: np.ndarray) -> tuple[np.ndarray, float]:
     """``stack.object_store.robust_mean`` on positions: the mean of those within k robust sigmas of the
-    median (never nearer than the floor); with the mean belief sum of the kept ones."""
-    diff = P - _median(P)
-    r = np.sqrt(np.einsum("ij,ij->i", diff, diff))
-    inlier = r <= max(ROBUST_K * 1.4826 * float(_median(r)), ROBUST_FLOOR_M)
-    n = int(inlier.sum())
-    b = beliefs[inlier]
-    b = b[np.isfinite(b)]
-    return P[inlier].sum(axis=0) / n, (float(b.sum() / len(b)) if len(b) else float("nan"))
+    median (never nearer than the floor); with the mean belief sum of the kept ones (NaNs skipped)."""
+    n = len(P)
+    if n <= 2:  # both points are equally far from their midpoint: both are kept
+        w = np.ones(n)
+    else:
+        diff = P - _median(P)
+        r = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        w = (r <= max(ROBUST_K * 1.4826 * float(_median(r)), ROBUST_FLOOR_M)).astype(np.float64)
+    cnt = w.sum()
+    belief = float(w @ beliefs)
+    if belief != belief:  # some belief sums are NaN: average the finite ones
+        ok = np.isfinite(beliefs) & (w > 0)
+        belief = float(beliefs[ok].mean()) if ok.any() else float("nan")
+    else:
+        belief /= cnt
+    return (w @ P) / cnt, belief
