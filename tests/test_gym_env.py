@@ -349,3 +349,26 @@ def test_sb3_example_trains_and_reports_against_the_baselines(cache, tmp_path):
 
     state = torch.load(tmp_path / "ppo_policy.pt", weights_only=True)
     assert any(k.endswith("weight") for k in state)
+
+
+@pytest.mark.slow
+def test_real_dope_detector_path_caches_every_stage_count(tmp_path):
+    """The default detector is the real DopeDetector: here with small untrained weights (what it
+    detects does not matter), to check the cache keeps every stage count and names the weights."""
+    import torch
+
+    from stack.dope_net import DopeNet, DopeNetConfig, save_weights
+
+    torch.manual_seed(0)
+    weights = tmp_path / "w" / "dope_rgb.pt"
+    save_weights(weights, DopeNet(DopeNetConfig(width=0.125, stages=2)))
+    env = gymnasium.make("DopeSlamLabelling-v0", scenario=SCENE, seeds=[0], duration=0.6, weights=str(weights),
+                         stage_choice=True, cache_dir=str(tmp_path / "cache"))
+    assert env.action_space.nvec.tolist() == [3] * 12 + [2]
+    obs, info = env.reset(seed=0)
+    spec = env.unwrapped.replay.perception.spec
+    assert spec.stages == (1, 2) and spec.detector.startswith("dope:rgb:w" + pc.file_sha256(weights))
+    meta = env.unwrapped.replay.perception.meta
+    assert set(meta["stage_seconds"]) == {"1", "2"} and all(v > 0 for v in meta["stage_seconds"].values())
+    obs, r, term, trunc, info = env.step(env.action_space.sample())
+    assert env.observation_space.contains(obs)

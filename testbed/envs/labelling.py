@@ -189,22 +189,21 @@ class DopeSlamLabellingEnv(gym.Env):
         self.k = 0
 
     # --- episodes and their perception -------------------------------------------------------------
-    def _detector_stage_counts(self) -> tuple:
+    def _detector_stage_counts(self, input_mode: str | None = None) -> tuple:
         if self._detector_stages is not None:
             return self._detector_stages
         if self._factory is not None or self._detector_id:
             return (self.stages,)  # a custom detector: one stage count unless detector_stages says more
-        try:
-            from stack.dope_fpr import DopeDetector
-
-            return tuple(range(1, 7)) if hasattr(DopeDetector, "detect_stages") else (self.stages,)
-        except ImportError:
-            return (self.stages,)
+        modes = [input_mode] if input_mode else sorted({resolve_input(self.input_mode, sc) for sc, _ in self.episodes})
+        counts = {pc.dope_stage_counts(m, self.stages, self.weights) for m in modes}
+        if len(counts) > 1:
+            raise ValueError(f"the DOPE weights for inputs {modes} have different stage counts {sorted(counts)}")
+        return counts.pop()
 
     def spec_for(self, i: int) -> pc.PerceptionSpec:
         sc, seed = self.episodes[i]
         input_mode = resolve_input(self.input_mode, sc)
-        kept = self._detector_stage_counts()
+        kept = self._detector_stage_counts(input_mode)
         if self._detector_id:
             det_id = self._detector_id
         else:

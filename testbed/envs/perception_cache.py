@@ -448,9 +448,7 @@ def load_or_build(spec: PerceptionSpec, detector_factory: DetectorFactory | None
 def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
     """Identity of the real DOPE detector: input, and hashes of its weights and FPR thresholds files
     (the FPR verdicts are part of the cached perception)."""
-    from stack import dope_fpr
-
-    path = Path(weights or getattr(detector, "weights_path", None) or dope_fpr.default_weights(input_mode))
+    path = Path(getattr(detector, "weights_path", None) or dope_weights_path(input_mode, weights))
     if not path.exists():
         raise PerceptionCacheError(f"{path}: no DOPE weights for input {input_mode!r} (train them with "
                                    "`dopeslam dope train`, or pass weights=...)")
@@ -459,15 +457,36 @@ def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
     return f"dope:{input_mode}:w{file_sha256(path)}:fpr{fpr}"
 
 
-def dope_factory(input_mode: str, stages: int, weights=None) -> tuple[DetectorFactory, str, tuple]:
-    """(factory, detector id, stage counts it gives) for the real DOPE detector with FPR verdicts.
-    When the detector gives every stage count from one pass (``detect_stages``) all of 1..6 are kept."""
+def dope_weights_path(input_mode: str, weights=None) -> Path:
+    from stack import dope_fpr
+
+    return Path(weights) if weights is not None else dope_fpr.default_weights(input_mode)
+
+
+def dope_stage_counts(input_mode: str, stages: int, weights=None) -> tuple:
+    """The stage counts a cache of the real DOPE keeps: all of 1..(the network's stages) when the
+    detector gives them from one pass (``detect_stages``), else the requested one."""
+    import torch
+
     from stack.dope_fpr import DopeDetector
+
+    path = dope_weights_path(input_mode, weights)
+    if not path.exists():
+        raise PerceptionCacheError(f"{path}: no DOPE weights for input {input_mode!r} (train them with "
+                                   "`dopeslam dope train`, or pass weights=...)")
+    blob = torch.load(str(path), map_location="cpu", weights_only=True)
+    n = int(blob["config"]["stages"])
+    if hasattr(DopeDetector, "detect_stages"):
+        return tuple(range(1, n + 1))
+    return (min(int(stages), n),)
+
+
+def dope_factory(input_mode: str, stages: int, weights=None) -> tuple[DetectorFactory, str, tuple]:
+    """(factory, detector id, stage counts it gives) for the real DOPE detector with FPR verdicts."""
     from testbed.run import make_detector
 
-    every = hasattr(DopeDetector, "detect_stages")
-    det = make_detector(input_mode, 6 if every else int(stages), True, weights)
-    kept = tuple(range(1, det.stages + 1)) if every else (int(stages),)
+    kept = dope_stage_counts(input_mode, stages, weights)
+    det = make_detector(input_mode, max(kept), True, weights)
     return (lambda ep: det), dope_detector_id(input_mode, weights, det), kept
 
 
