@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from dataclasses import dataclass, field
 from typing import Iterator
 
@@ -16,7 +17,7 @@ import numpy as np
 import pybullet as p
 from scipy.spatial.transform import Rotation
 
-from sim.camera import default_camera_info, new_client, render_rgbd
+from sim.camera import RenderWorker, default_camera_info, new_client, render_rgbd
 from sim.lidar import BeamPattern, BoxRayCaster
 from sim.objects import cuboid_keypoints
 from sim.robot import Jackal
@@ -103,7 +104,11 @@ class Episode:
 
     def __init__(self, scenario: Scenario | str | None = None, seed: int | None = None,
                  duration: float | None = None, light: float | None = None, renderer: str = "auto",
-                 camera: bool | None = None, lidar: bool | None = None):
+                 camera: bool | None = None, lidar: bool | None = None, render_worker: bool | None = None):
+        """``render_worker``: render the camera in a second process (``sim.camera.RenderWorker``) so the
+        rendering overlaps the physics, the LiDAR and whatever consumes the frames; the frames and
+        their order are the same either way. None: as the environment variable DOPESLAM_RENDER_WORKER
+        says (1 = on), else off."""
         self.sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.seed = self.sc.seed if seed is None else int(seed)
         self.duration = self.sc.duration if duration is None else float(duration)
@@ -111,6 +116,12 @@ class Episode:
         s = self.sc.sensors
         self.use_camera = s.camera if camera is None else camera
         self.use_lidar = s.lidar if lidar is None else lidar
+        self.camera_info = default_camera_info(s.camera_width, s.camera_height)
+        if render_worker is None:
+            render_worker = os.environ.get("DOPESLAM_RENDER_WORKER", "0") == "1"
+        self._render_worker = None
+        if self.use_camera and render_worker:  # started first: it builds its world while this one does
+            self._render_worker = RenderWorker(self.sc, self.camera_info, renderer)
         ss = np.random.SeedSequence(self.seed)
         self.rng_lidar, self.rng_camera, self.rng_odom = (np.random.default_rng(c) for c in ss.spawn(3))
         self.client, self.renderer = new_client(renderer if self.use_camera else "tiny")  # no EGL without a camera
@@ -122,7 +133,6 @@ class Episode:
         self.robot = Jackal(self.client, (x, y, math.radians(yaw_deg)), self.rng_odom)
         self.caster = BoxRayCaster(self.world.boxes)
         self.beams = BeamPattern.from_hardware(s.lidar_azimuth_steps, s.lidar_rate)
-        self.camera_info = default_camera_info(s.camera_width, s.camera_height)
         self.follower = RouteFollower(self.sc)
         self.groundtruth = GroundTruth()
         self.T_world_map: np.ndarray | None = None
@@ -150,6 +160,9 @@ class Episode:
         return interpolate_trajectory(self.groundtruth.stamps, self.groundtruth.T_world_base, t)
 
     def close(self) -> None:
+        if getattr(self, "_render_worker", None) is not None:
+            self._render_worker.close()
+            self._render_worker = None
         if self.client is not None:
             p.disconnect(self.client)
             self.client = None
@@ -172,6 +185,9 @@ class Episode:
         dirs = self.beams.directions()
         col_t = self.beams.column_times()
         az = self.beams.azimuths()
+        worker = self._render_worker
+        in_flight = None  # (t, T_world_cam) of the frame the render worker is drawing
+        held = []  # messages after that frame, held back to keep the time order
         wall0 = time.perf_counter()
         for k in range(steps + 1):
             t = k * self.dt
@@ -180,20 +196,34 @@ class Episode:
             self.groundtruth.base_poses.append(T_world_base)
             if k > 0:
                 self.robot.update_odometry(self.dt)
+            out = []
             if k % odo_every == 0:
-                yield WheelOdometry(t, self.robot.T_odom_base.copy(), self.robot.odo_v, self.robot.odo_w)
+                out.append(WheelOdometry(t, self.robot.T_odom_base.copy(), self.robot.odo_v, self.robot.odo_w))
             if self.use_lidar and k >= sweep_steps and k % sweep_steps == 0:
                 scan = self._lidar_scan(t - self.beams.period, dirs, col_t, az)
                 if self.T_world_map is None:
                     self.T_world_map = self.T_world_base_at(scan.stamp)
-                yield scan
+                out.append(scan)
             if self.use_camera and k % cam_every == 0:
-                yield self._camera_frame(t, T_world_base)
+                if worker is None:
+                    out.append(self._camera_frame(t, T_world_base))
+                else:  # collect the previous frame, start this one, then hand out what came before it
+                    ready = ([self._collect_frame(*in_flight)] if in_flight else []) + held + out
+                    held, out = [], []
+                    in_flight = self._submit_frame(t, T_world_base)
+                    yield from ready
+            if in_flight:
+                held.extend(out)
+            else:
+                yield from out
             if k == steps:
                 break
             v, w = self.follower(t, T_world_base)
             self.robot.command(v, w, self.dt)
             p.stepSimulation(physicsClientId=self.client)
+        if in_flight:
+            yield self._collect_frame(*in_flight)
+            yield from held
         self.wall_seconds = time.perf_counter() - wall0
         self.sim_seconds = steps * self.dt
 
@@ -225,8 +255,23 @@ class Episode:
 
     def _camera_frame(self, t: float, T_world_base: np.ndarray) -> CameraFrame:
         T_world_cam = T_world_base @ self._T_base_camera
-        rgb, depth, seg = render_rgbd(self.client, T_world_cam, self.camera_info, self.light, self.rng_camera,
+        rng = np.random.default_rng(self._frame_seed())
+        rgb, depth, seg = render_rgbd(self.client, T_world_cam, self.camera_info, self.light, rng,
                                       self.sc.sensors.noise, self.renderer)
+        return CameraFrame(t, self.camera_info, rgb, depth, T_world_cam, {"segmentation": seg})
+
+    def _frame_seed(self) -> int:
+        """Each frame's noise has its own seed, drawn in frame order, so a frame is the same whichever
+        process renders it."""
+        return int(self.rng_camera.integers(2**63))
+
+    def _submit_frame(self, t: float, T_world_base: np.ndarray) -> tuple[float, np.ndarray]:
+        T_world_cam = T_world_base @ self._T_base_camera
+        self._render_worker.submit(T_world_cam, T_world_base, self.light, self.sc.sensors.noise, self._frame_seed())
+        return t, T_world_cam
+
+    def _collect_frame(self, t: float, T_world_cam: np.ndarray) -> CameraFrame:
+        rgb, depth, seg = self._render_worker.collect()
         return CameraFrame(t, self.camera_info, rgb, depth, T_world_cam, {"segmentation": seg})
 
     # --- per-image ground truth ---------------------------------------------------------------------

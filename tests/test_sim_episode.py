@@ -65,6 +65,23 @@ def test_frames_come_in_time_order_with_their_ground_truth_poses():
         assert np.linalg.norm(ep.groundtruth.T_world_base[-1, :2, 3] - ep.groundtruth.T_world_base[0, :2, 3]) > 0.01
 
 
+def test_render_worker_gives_the_same_frames_in_the_same_order():
+    sc = load_scenario(None)
+    sc = sc.model_copy(update={"route": sc.route.model_copy(update={"start_pause": 0.0})})
+    runs = {}
+    for worker in (False, True):
+        with Episode(sc, seed=11, duration=0.25, render_worker=worker) as ep:
+            runs[worker] = list(ep.frames())
+    assert [(type(m), m.stamp) for m in runs[False]] == [(type(m), m.stamp) for m in runs[True]]
+    frames = [(a, b) for a, b in zip(runs[False], runs[True]) if isinstance(a, CameraFrame)]
+    assert len(frames) == 3
+    for a, b in frames:
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_array_equal(a.depth_m, b.depth_m)
+        np.testing.assert_array_equal(a.extra["segmentation"], b.extra["segmentation"])
+        np.testing.assert_array_equal(a.T_world_camera, b.T_world_camera)
+
+
 def simulate(out, seed: int) -> dict:
     assert cli_main(["simulate", "--out", str(out), "--seed", str(seed), "--duration", "0.5"]) == 0
     return json.loads((out / "summary.json").read_text())
