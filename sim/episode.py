@@ -113,6 +113,7 @@ class Episode:
         self.seed = self.sc.seed if seed is None else int(seed)
         self.duration = self.sc.duration if duration is None else float(duration)
         self.light = self.sc.light if light is None else float(light)
+        self._light_schedule = [] if light is not None else list(self.sc.light_schedule)  # an override wins
         s = self.sc.sensors
         self.use_camera = s.camera if camera is None else camera
         self.use_lidar = s.lidar if lidar is None else lidar
@@ -155,6 +156,14 @@ class Episode:
     @property
     def objects(self):
         return self.world.objects
+
+    def light_at(self, t: float) -> float:
+        """The light level at time t: the scenario's ``light_schedule`` if any, else ``light``."""
+        level = self.light
+        for t_from, lvl in self._light_schedule:
+            if t >= t_from:
+                level = float(lvl)
+        return level
 
     def T_world_base_at(self, t: float) -> np.ndarray:
         return interpolate_trajectory(self.groundtruth.stamps, self.groundtruth.T_world_base, t)
@@ -256,7 +265,7 @@ class Episode:
     def _camera_frame(self, t: float, T_world_base: np.ndarray) -> CameraFrame:
         T_world_cam = T_world_base @ self._T_base_camera
         rng = np.random.default_rng(self._frame_seed())
-        rgb, depth, seg = render_rgbd(self.client, T_world_cam, self.camera_info, self.light, rng,
+        rgb, depth, seg = render_rgbd(self.client, T_world_cam, self.camera_info, self.light_at(t), rng,
                                       self.sc.sensors.noise, self.renderer)
         return CameraFrame(t, self.camera_info, rgb, depth, T_world_cam, {"segmentation": seg})
 
@@ -267,7 +276,7 @@ class Episode:
 
     def _submit_frame(self, t: float, T_world_base: np.ndarray) -> tuple[float, np.ndarray]:
         T_world_cam = T_world_base @ self._T_base_camera
-        self._render_worker.submit(T_world_cam, T_world_base, self.light, self.sc.sensors.noise, self._frame_seed())
+        self._render_worker.submit(T_world_cam, T_world_base, self.light_at(t), self.sc.sensors.noise, self._frame_seed())
         return t, T_world_cam
 
     def _collect_frame(self, t: float, T_world_cam: np.ndarray) -> CameraFrame:

@@ -109,6 +109,8 @@ class Scenario(_Strict):
     seed: int = Field(0, ge=0)
     duration: float = Field(60.0, gt=0.0, le=3600.0)
     light: float = Field(1.0, ge=0.0, le=1.0, description="1 = lit, 0 = complete darkness")
+    light_schedule: list[Vec2] = Field(default_factory=list, description="[time s, level]: from that time on the "
+                                       "light is at that level (before the first entry: `light`)")
     physics_hz: float = Field(240.0, ge=60.0, le=1000.0)
     room: Room
     furniture: list[Furniture] = Field(default_factory=list)
@@ -135,6 +137,9 @@ class Scenario(_Strict):
         for i, w in enumerate(self.route.waypoints):
             if not inside(w[:2]):
                 raise ValueError(f"route.waypoints.{i} {w[:2]} is outside the room (|x| < {hx}, |y| < {hy})")
+        for i, (t, level) in enumerate(self.light_schedule):
+            if not 0.0 <= level <= 1.0 or t < 0 or (i and t <= self.light_schedule[i - 1][0]):
+                raise ValueError(f"light_schedule.{i}: expected [time s >= 0, increasing; level 0..1], got {[t, level]}")
         for i, (idx, secs) in enumerate(self.route.pauses):
             if not (0 <= idx < len(self.route.waypoints)) or int(idx) != idx or secs < 0:
                 raise ValueError(f"route.pauses.{i}: expected [waypoint index 0..{len(self.route.waypoints) - 1}, seconds >= 0]")
