@@ -1,12 +1,16 @@
 """Simulator speed: real-time factor of the default scenario's driving phase and each sensor's cost.
 
-Runs the default scenario (route pause removed, so the robot drives the whole time) four ways, each
-for ``--duration`` simulated seconds: physics only, + LiDAR, + camera, and every sensor at its
-default rate (RGB + depth 640x480 at 10 Hz, the full 32 x 1808 sweep at 10 Hz, wheel odometry).
-Reports wall and CPU seconds per simulated second; the all-sensor run is also timed per call
-(LiDAR scan, camera render, depth noise, colour noise). The CPU figure counts every thread of this process (the
-EGL software rasteriser has its own), so it is the cost on an otherwise idle machine; wall time
-depends on what else runs, so the load average and the CPUs this process may use are printed too.
+Runs the default scenario (route pause removed, so the robot drives the whole time) for ``--duration``
+simulated seconds each way: physics only, + LiDAR, + camera, every sensor at its default rate (RGB +
+depth 640x480 at 10 Hz, the full 32 x 1808 sweep at 10 Hz, wheel odometry at 20 Hz), and every sensor
+with the camera rendered in a second process (``Episode(render_worker=True)``).
+
+Reported per simulated second: CPU seconds (every thread of the process: the EGL software rasteriser
+has its own; for the worker run, main + worker, the worker's start-up excluded), and the real-time
+factor that CPU time allows on two idle cores (one process: 1 / CPU, as if it all ran on one core;
+render worker: 1 / the busier process). Wall time is measured too, but on a shared machine it says
+more about the other jobs than about the simulator, so the load average is printed with it. The
+all-sensor run is also timed per call (LiDAR scan, camera render, depth noise, colour noise).
 
     python benchmarks/bench_sim.py [--duration 15] [--cpus 0,1] [--json benchmarks/results/sim.json]
 """
