@@ -11,6 +11,7 @@ from sim.lidar import BeamPattern, BoxRayCaster
 from sim.scenario import load_scenario
 from sim.world import build_world
 from stack.messages import LidarScan
+from stack.transforms import interpolate_trajectory
 
 # A 6 x 4 m room, 1.2 m high, open to the sky (upward beams above the walls escape), with a pillar
 # and a low crate turned by 30 degrees. The robot stands still at the origin facing +x.
@@ -148,7 +149,8 @@ def test_scans_carry_motion_skew_from_the_pose_at_each_firing_time(scenario_file
     scan = scans[-1]
     col, ring = ray_of_each_point(scan, ep.beams)
     d_sensor = ep.beams.directions()[col, ring]
-    T_ws = np.array([ep.T_world_base_at(t) for t in scan.stamp + ep.beams.column_times()]) @ ep.T_base_velodyne
+    gt = ep.groundtruth
+    T_ws = interpolate_trajectory(gt.stamps, gt.T_world_base, scan.stamp + ep.beams.column_times()) @ ep.T_base_velodyne
     moved = np.linalg.norm(T_ws[-1, :3, 3] - T_ws[0, :3, 3])
     assert moved > 0.05  # the sensor travelled during the sweep
     measured = np.linalg.norm(scan.points.astype(float), axis=1)
