@@ -24,8 +24,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 import sim.camera as camera
 from sim.episode import Episode
 from sim.scenario import load_scenario
@@ -105,7 +103,8 @@ def run_variant(sc, duration: float, camera_on: bool, lidar_on: bool, worker: bo
         per_frame = (worker_cpu[-1] - worker_cpu[0]) / max(len(worker_cpu) - 1, 1)
         out["worker_cpu_per_sim_s"] = per_frame * counts["camera"] / sim_s
         children = resource.getrusage(resource.RUSAGE_CHILDREN)
-        out["worker_total_cpu_seconds"] = children.ru_utime + children.ru_stime - children0.ru_utime - children0.ru_stime
+        out["worker_total_cpu_seconds"] = (children.ru_utime + children.ru_stime
+                                           - children0.ru_utime - children0.ru_stime)
         # two processes on two cores: the busier one sets the pace
         out["cpu_per_sim_s"] = out["main_cpu_per_sim_s"] + out["worker_cpu_per_sim_s"]
         out["idle_2core_rtf_estimate"] = 1.0 / max(out["main_cpu_per_sim_s"], out["worker_cpu_per_sim_s"])

@@ -276,7 +276,8 @@ class Episode:
 
     def _submit_frame(self, t: float, T_world_base: np.ndarray) -> tuple[float, np.ndarray]:
         T_world_cam = T_world_base @ self._T_base_camera
-        self._render_worker.submit(T_world_cam, T_world_base, self.light_at(t), self.sc.sensors.noise, self._frame_seed())
+        self._render_worker.submit(T_world_cam, T_world_base, self.light_at(t), self.sc.sensors.noise,
+                                   self._frame_seed())
         return t, T_world_cam
 
     def _collect_frame(self, t: float, T_world_cam: np.ndarray) -> CameraFrame:
