@@ -49,11 +49,19 @@ def load_shard_frames(data_dir, shard_ids, classes):
             yield frame, truths
 
 
-def add_error(T_est, T_true, dims) -> float:
+def add_error(T_est, T_true, dims, half_turn: bool = True) -> float:
+    """ADD: mean distance of the cuboid's key points under the two poses. With ``half_turn`` the truth may
+    also be turned half about its vertical axis (the symmetry the training labels resolve by view, see
+    :func:`stack.dope_train.canonical_order`); the smaller error counts."""
     pts = cuboid_points(dims)
     a = pts @ T_est[:3, :3].T + T_est[:3, 3]
-    b = pts @ T_true[:3, :3].T + T_true[:3, 3]
-    return float(np.mean(np.linalg.norm(a - b, axis=1)))
+    cands = [T_true[:3, :3]]
+    if half_turn:
+        up = int(np.argmax(np.abs(T_true[1, :3])))
+        g = -np.ones(3)
+        g[up] = 1
+        cands.append(T_true[:3, :3] @ np.diag(g))
+    return float(min(np.mean(np.linalg.norm(a - (pts @ R.T + T_true[:3, 3]), axis=1)) for R in cands))
 
 
 def evaluate(detector: DopeDetector, data_dir, shard_ids, near_far=(0.5, 1.5), min_visible=0.5,

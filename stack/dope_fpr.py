@@ -9,7 +9,9 @@ Pipeline (paper sections 3.1 and 3.4):
    and corner candidates; each corner joins the centroid its affinity vector points at (within
    ``angle_threshold``); peak positions are refined to sub-cell precision (belief-weighted centroid).
 3. ``cv2.solvePnP`` (EPnP, then Levenberg-Marquardt) with the class's cuboid gives the pose in the
-   camera optical frame.
+   camera optical frame. The shipped weights are trained with view-canonical labels (the face towards
+   the camera is "front", :func:`stack.dope_train.canonical_order`), so the orientation is reported up to
+   a half turn about the object's vertical axis; the position is not affected.
 4. FPR: the belief tensor of the class (its 9 maps of the evaluated stage, negative values clipped)
    is summed; a sharp, single prediction has a small sum, several objects or an unsure network a
    large one. A detection passes when its sum is at or below the threshold for (class, stage count).

@@ -70,11 +70,39 @@ class TrainConfig:
 
 # --- data ----------------------------------------------------------------------------------------
 
+_CORNER_SIGNS = np.array([[1, 1, 1], [-1, 1, 1], [-1, -1, 1], [1, -1, 1],
+                          [1, 1, -1], [-1, 1, -1], [-1, -1, -1], [1, -1, -1], [0, 0, 0]])
+
+
+def canonical_order(quat_xyzw, location) -> np.ndarray:
+    """Key-point relabelling (index array) that makes the labelled front face the one towards the camera.
+
+    A cuboid standing upright looks the same after a half turn about its vertical axis; only texture
+    tells the two apart, which a small CPU-trained network learns slowly (DESIGN.md). The annotation is
+    therefore relabelled by that half turn whenever the object's front (+z) faces away from the camera.
+    The centroid and the translation PnP recovers are unchanged; the orientation is then defined up to
+    that half turn. The vertical axis is the object axis most aligned with the camera's y (down) axis.
+    """
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_quat(quat_xyzw).as_matrix()  # object -> camera
+    up = int(np.argmax(np.abs(R[1])))
+    to_cam = -np.asarray(location, dtype=float)
+    if up == 2 or R[:, 2] @ to_cam >= 0:
+        return np.arange(9)
+    flip = -np.ones(3)
+    flip[up] = 1  # half turn about the up axis negates the other two coordinates
+    target = _CORNER_SIGNS * flip
+    return np.array([int(np.nonzero(np.all(_CORNER_SIGNS == t, axis=1))[0][0]) for t in target])
+
+
 class ShardData:
     """All shards of a data directory in memory: images and per-image targets (class, key points)."""
 
-    def __init__(self, data_dir: str | Path, classes: tuple, min_visible: float = 0.15, load_depth: bool = False):
+    def __init__(self, data_dir: str | Path, classes: tuple, min_visible: float = 0.15, load_depth: bool = False,
+                 canonical: bool = True):
         self.data_dir = Path(data_dir)
+        self.canonical = canonical
         self.classes = tuple(classes)
         self.min_visible = min_visible
         self.load_depth = load_depth
@@ -122,8 +150,11 @@ class ShardData:
                     seen = o["pixels_visible"] / max(o["hull_area_px"], 1.0)
                     if o["pixels_visible"] < 12 or seen < self.min_visible:
                         continue
-                    objs.append((self.classes.index(o["class"]), np.array(o["keypoints_px"], dtype=np.float64),
-                                 np.array(o["location"], dtype=np.float64)))
+                    kp = np.array(o["keypoints_px"], dtype=np.float64)
+                    loc = np.array(o["location"], dtype=np.float64)
+                    if self.canonical:
+                        kp = kp[canonical_order(o["quaternion_xyzw"], loc)]
+                    objs.append((self.classes.index(o["class"]), kp, loc))
                 self.rgb.append(rgb[i])
                 if depth is not None:
                     self.depth.append(depth[i])
