@@ -21,6 +21,8 @@ import json
 import logging
 import math
 import platform
+import queue
+import threading
 import time
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -99,11 +101,18 @@ class EpisodeRecorder:
     The first ``write`` puts the latched topics first (metadata, ``/tf_static``, the objects'
     ground truth); each ``write`` adds the base poses the episode has produced since the last one,
     and for a camera frame the per-image ground truth (``truths``: ``ep.image_truth(frame)`` when
-    the caller has it already, else it is computed). ``seconds`` is the wall time spent here,
-    ``cpu_seconds`` the CPU time of this thread spent here.
+    the caller has it already, else it is computed).
+
+    ``background``: conversion, serialisation, compression and disk writes run in a thread of
+    their own (compression and I/O release the GIL, so on two cores they overlap the simulation);
+    at most ``queue_size`` messages wait, and an error there is raised by the next ``write`` or by
+    ``finish``, which waits for everything to be written. ``seconds`` is the wall time the caller
+    spent in ``write``/``finish`` (what recording adds to its loop), ``cpu_seconds`` the CPU time
+    of the recording in either thread.
     """
 
-    def __init__(self, writer: BagWriter, ep, image_truth: bool = True):
+    def __init__(self, writer: BagWriter, ep, image_truth: bool = True, background: bool = True,
+                 queue_size: int = 32):
         self.writer = writer
         self.ep = ep
         self.image_truth = image_truth
@@ -111,40 +120,93 @@ class EpisodeRecorder:
         self.cpu_seconds = 0.0
         self._gt_written = 0
         self._started = False
-
-    def start(self) -> None:
-        if self._started:
-            return
-        self._started = True
-        ep, w = self.ep, self.writer
-        w.write_metadata(0.0, episode_metadata(ep))
-        w.write_extrinsics(ep.T_base_velodyne, ep.T_base_camera, stamp=0.0,
-                           camera_frame=ep.camera_info.frame_id)
-        w.write_ground_truth_objects(0.0, ep.objects)
+        self._finished = False
+        self._queue: queue.Queue | None = queue.Queue(maxsize=queue_size) if background else None
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+        self._worker_cpu = 0.0
 
     def write(self, msg: LidarScan | CameraFrame | WheelOdometry, truths: Sequence[dict] | None = None) -> None:
         t0, c0 = time.perf_counter(), time.thread_time()
-        self.start()
-        self._write_ground_truth_poses()
-        self.writer.write(msg)
+        if self._finished:
+            raise RuntimeError("EpisodeRecorder.write after finish()")
+        self._start()
+        self._submit_ground_truth_poses()
+        self._submit(self.writer.write, msg)
         if self.image_truth and isinstance(msg, CameraFrame):
-            write_image_truth(self.writer, msg.stamp, self.ep.image_truth(msg) if truths is None else truths)
+            self._submit(write_image_truth, self.writer, msg.stamp,
+                         self.ep.image_truth(msg) if truths is None else truths)
         self.seconds += time.perf_counter() - t0
         self.cpu_seconds += time.thread_time() - c0
 
     def finish(self) -> None:
+        """Write the remaining ground truth and wait until everything is in the writer."""
         t0, c0 = time.perf_counter(), time.thread_time()
-        self.start()
-        self._write_ground_truth_poses()
+        if not self._finished:
+            self._start()
+            self._submit_ground_truth_poses()
+            self._finished = True
+            if self._thread is not None:
+                self._queue.put(None)
+                self._thread.join()
+                self.cpu_seconds += self._worker_cpu
+            self._raise_pending()
         self.seconds += time.perf_counter() - t0
         self.cpu_seconds += time.thread_time() - c0
 
-    def _write_ground_truth_poses(self) -> None:
+    # --- internals ---
+    def _start(self) -> None:
+        if self._started:
+            return
+        self._started = True
+        if self._queue is not None:
+            self._thread = threading.Thread(target=self._work, name="bag-recorder", daemon=True)
+            self._thread.start()
+        ep = self.ep
+        self._submit(self.writer.write_metadata, 0.0, episode_metadata(ep))
+        self._submit(self.writer.write_extrinsics, ep.T_base_velodyne, ep.T_base_camera, 0.0,
+                     T.VELODYNE, ep.camera_info.frame_id)
+        self._submit(self.writer.write_ground_truth_objects, 0.0, list(ep.objects))
+
+    def _submit_ground_truth_poses(self) -> None:
         gt = self.ep.groundtruth
-        stamps, poses = gt.base_stamps, gt.base_poses
-        for k in range(self._gt_written, len(stamps)):
-            self.writer.write_ground_truth_pose(stamps[k], poses[k])
-        self._gt_written = len(stamps)
+        n = len(gt.base_stamps)
+        if n > self._gt_written:
+            stamps, poses = gt.base_stamps[self._gt_written:n], gt.base_poses[self._gt_written:n]
+            self._gt_written = n
+            self._submit(self._write_poses, stamps, poses)
+
+    def _write_poses(self, stamps: list, poses: list) -> None:
+        for t, T_world_base in zip(stamps, poses):
+            self.writer.write_ground_truth_pose(t, T_world_base)
+
+    def _submit(self, fn, *args) -> None:
+        self._raise_pending()
+        if self._queue is None:
+            fn(*args)
+        else:
+            self._queue.put((fn, args))
+
+    def _raise_pending(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def _work(self) -> None:
+        c0 = time.thread_time()
+        assert self._queue is not None
+        while True:
+            item = self._queue.get()
+            if item is None:
+                break
+            if self._error is not None:
+                continue  # after an error: drain, so the episode never blocks on a full queue
+            fn, args = item
+            try:
+                fn(*args)
+            except BaseException as exc:  # handed to the episode's thread by the next write/finish
+                self._error = exc
+        self._worker_cpu = time.thread_time() - c0
 
 
 def record_episode(scenario=None, bag: Path | str = "out/episode", format: str | None = None,
