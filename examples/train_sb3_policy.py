@@ -25,8 +25,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def env_kwargs(scenario, seeds, duration, detector, cache) -> dict:
-    kw = dict(scenario=scenario, seeds=list(seeds), duration=duration, cache_dir=cache)
+def env_kwargs(scenario, seeds, duration, detector, cache, renderer="auto") -> dict:
+    kw = dict(scenario=scenario, seeds=list(seeds), duration=duration, cache_dir=cache, renderer=renderer)
     if detector == "double":
         sys.path.insert(0, str(ROOT / "tests"))
         from labelling_double import NoisyOracle
@@ -68,7 +68,7 @@ def save_policy(model, venv, out: Path) -> None:
 
 def run(scenario=None, train_seeds=range(0, 8), eval_seeds=range(8, 10), timesteps: int = 50_000,
         duration: float | None = None, detector: str = "dope", cache=None, out="out/sb3", n_envs: int = 2,
-        seed: int = 0, verbose: int = 0) -> dict:
+        seed: int = 0, verbose: int = 0, renderer: str = "auto") -> dict:
     try:
         from stable_baselines3 import PPO
         from stable_baselines3.common.env_util import make_vec_env
@@ -82,7 +82,7 @@ def run(scenario=None, train_seeds=range(0, 8), eval_seeds=range(8, 10), timeste
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    train_kw = env_kwargs(scenario, train_seeds, duration, detector, cache)
+    train_kw = env_kwargs(scenario, train_seeds, duration, detector, cache, renderer)
     # cache every training episode once, in this process, before the workers start
     probe = gymnasium.make("DopeSlamLabelling-v0", **train_kw)
     for i in range(len(probe.unwrapped.episodes)):
@@ -99,7 +99,8 @@ def run(scenario=None, train_seeds=range(0, 8), eval_seeds=range(8, 10), timeste
     venv.training = False
     save_policy(model, venv, out)
 
-    eval_env = gymnasium.make("DopeSlamLabelling-v0", **env_kwargs(scenario, eval_seeds, duration, detector, cache))
+    eval_env = gymnasium.make("DopeSlamLabelling-v0", **env_kwargs(scenario, eval_seeds, duration, detector, cache,
+                                                                   renderer))
     policies = {"ppo": SB3Policy(model, venv)}
     policies.update({n: make_policy(n, eval_env) for n in BASELINES})
     rows = {n: [] for n in policies}

@@ -27,7 +27,7 @@ DETECTOR_ID = "test-noisy-oracle-v1"
 
 def env_kwargs(cache, **kw):
     base = dict(scenario=SCENE, seeds=[0, 1], duration=DURATION, detector_factory=NoisyOracle,
-                detector_id=DETECTOR_ID, detector_stages=range(1, 7), cache_dir=str(cache))
+                detector_id=DETECTOR_ID, detector_stages=range(1, 7), cache_dir=str(cache), renderer="tiny")
     base.update(kw)
     return base
 
@@ -55,7 +55,7 @@ def test_cached_env_passes_gymnasium_check_env(cache):
     check_env(env.unwrapped)
     staged = gymnasium.make("DopeSlamLabelling-v0", stage_choice=True, **env_kwargs(cache))
     check_env(staged.unwrapped, skip_render_check=True)
-    assert staged.action_space.nvec.tolist() == [3] * 12 + [6]
+    assert staged.action_space.nvec.tolist() == [3] * 16 + [6]
 
 
 @pytest.mark.slow
@@ -128,7 +128,7 @@ def test_cache_is_reused_and_rebuilt_when_any_key_field_changes(cache, tmp_path)
     assert files == sorted([f"{spec.stem()}.json", f"{spec.stem()}.npz", f"{spec.stem()}.thumbs.npz"])
     # any field of the key changes it
     for change in ({"seed": 6}, {"duration": 2.5}, {"input": "depth"}, {"stages": (6,)}, {"detector": "other"},
-                   {"light": 0.5}, {"scenario_sha": "0" * 16}, {"version": pc.CACHE_VERSION + 1}):
+                   {"light": 0.5}, {"scenario_sha": "0" * 16}, {"renderer": "egl"}, {"version": pc.CACHE_VERSION + 1}):
         other = pc.PerceptionSpec.from_dict({**spec.to_dict(), **change})
         assert other.key() != spec.key(), change
         assert pc.load(other, tmp_path) is None
@@ -263,13 +263,19 @@ def test_sync_and_async_vector_envs_with_two_workers_agree(cache):
 # --- the active variant --------------------------------------------------------------------------------
 
 @pytest.mark.slow
-def test_active_env_passes_check_env_and_drives():
+def test_active_env_passes_check_env():
+    env = gymnasium.make("DopeSlamActiveLabelling-v0", scenario=SCENE, duration=0.3, detector_factory=NoisyOracle,
+                         renderer="tiny")
+    check_env(env.unwrapped, skip_render_check=True)
+    env.close()
+
+
+@pytest.mark.slow
+def test_active_env_drives_and_labels():
     from testbed.envs.active import ActivePolicy
 
-    kw = dict(scenario=SCENE, duration=0.6, detector_factory=NoisyOracle)
-    env = gymnasium.make("DopeSlamActiveLabelling-v0", **kw)
-    check_env(env.unwrapped, skip_render_check=True)
-    env = gymnasium.make("DopeSlamActiveLabelling-v0", **{**kw, "duration": 2.0})
+    env = gymnasium.make("DopeSlamActiveLabelling-v0", scenario=SCENE, duration=2.0, detector_factory=NoisyOracle,
+                         render_mode="rgb_array", renderer="tiny")
     policy = ActivePolicy(make_policy("robust-mean", env), env=env)
     obs, info = env.reset(seed=0)
     start = obs["pose"][:2].copy()
@@ -278,14 +284,17 @@ def test_active_env_passes_check_env_and_drives():
         obs, r, term, trunc, info = env.step(policy(obs, info))
         if term:
             break
+        if r != 0.0:
+            frame = env.render()
     assert obs["pose"][0] - start[0] > 0.2  # it drove towards the route's waypoint
     assert info["map_score"]["summary"]["labelled"] >= 1
+    assert frame.shape == (240, 642, 3)
     env.close()
 
 
 @pytest.mark.slow
 def test_active_envs_each_own_a_pybullet_client():
-    kw = dict(scenario=SCENE, duration=0.5, detector_factory=NoisyOracle)
+    kw = dict(scenario=SCENE, duration=0.5, detector_factory=NoisyOracle, renderer="tiny")
     venv = gymnasium.vector.SyncVectorEnv([lambda: gymnasium.make("DopeSlamActiveLabelling-v0", **kw)] * 2)
     try:
         venv.reset(seed=[0, 1])
@@ -293,7 +302,7 @@ def test_active_envs_each_own_a_pybullet_client():
         assert clients[0] != clients[1]
         act = venv.action_space.sample()
         obs, r, term, trunc, info = venv.step(act)
-        assert obs["slots"].shape == (2, 12, 23)
+        assert obs["slots"].shape == (2, 16, 23)
     finally:
         venv.close()
 
@@ -340,8 +349,8 @@ def test_sb3_example_trains_and_reports_against_the_baselines(cache, tmp_path):
     spec = importlib.util.spec_from_file_location("train_sb3_policy", path)
     example = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(example)
-    report = example.run(SCENE, [0], [1], timesteps=512, duration=DURATION, detector="double", cache=str(cache),
-                         out=tmp_path, n_envs=1)
+    report = example.run(SCENE, [0], [1], timesteps=256, duration=DURATION, detector="double", cache=str(cache),
+                         out=tmp_path, n_envs=1, renderer="tiny")
     assert set(report["policies"]) == {"ppo", *BASELINES}
     assert report["policies"]["ppo"]["return"][0] is not None
     assert (tmp_path / "ppo_policy.pt").exists() and (tmp_path / "obs_normalisation.json").exists()
@@ -363,8 +372,8 @@ def test_real_dope_detector_path_caches_every_stage_count(tmp_path):
     weights = tmp_path / "w" / "dope_rgb.pt"
     save_weights(weights, DopeNet(DopeNetConfig(width=0.125, stages=2)))
     env = gymnasium.make("DopeSlamLabelling-v0", scenario=SCENE, seeds=[0], duration=0.6, weights=str(weights),
-                         stage_choice=True, cache_dir=str(tmp_path / "cache"))
-    assert env.action_space.nvec.tolist() == [3] * 12 + [2]
+                         stage_choice=True, cache_dir=str(tmp_path / "cache"), renderer="tiny")
+    assert env.action_space.nvec.tolist() == [3] * 16 + [2]
     obs, info = env.reset(seed=0)
     spec = env.unwrapped.replay.perception.spec
     assert spec.stages == (1, 2) and spec.detector.startswith("dope:rgb:w" + pc.file_sha256(weights))
@@ -372,3 +381,58 @@ def test_real_dope_detector_path_caches_every_stage_count(tmp_path):
     assert set(meta["stage_seconds"]) == {"1", "2"} and all(v > 0 for v in meta["stage_seconds"].values())
     obs, r, term, trunc, info = env.step(env.action_space.sample())
     assert env.observation_space.contains(obs)
+
+
+# --- slots: association, actions, cost (no simulation) -------------------------------------------------
+
+def frame_dets(rows):
+    """rows: (cls, xyz, belief, fpr) -> the detection dict SlotMap reads."""
+    from testbed.envs.slots import with_lists
+
+    d = {"cls": np.array([r[0] for r in rows], dtype=np.int16).reshape(-1),
+         "xyz": np.array([r[1] for r in rows], dtype=float).reshape(-1, 3),
+         "belief": np.array([r[2] for r in rows], dtype=float), "fpr": np.array([r[3] for r in rows], dtype=bool),
+         "range": np.ones(len(rows))}
+    d["err"] = np.zeros(len(rows))
+    return with_lists(d)
+
+
+def test_slots_associate_replace_fuse_and_score():
+    from testbed.envs.slots import FUSE, IGNORE, REPLACE, SlotMap
+
+    truth_cls, truth_xyz = np.array([0, 1]), np.array([[1.0, 0.0, 0.5], [2.0, 1.0, 0.5]])
+    sm = SlotMap(3, 6, truth_cls, truth_xyz, gate_m=0.5)
+    assert sm.cost == pytest.approx(2 * 0.5)  # both missing
+    # frame 1: class 0 near its truth, class 1 far off (a false label if taken), and a duplicate of class 0
+    sm.observe(frame_dets([(0, (1.1, 0.0, 0.5), 9.0, True), (1, (2.0, 1.6, 0.5), 9.0, True),
+                           (0, (1.05, 0.0, 0.5), 20.0, False)]), 0, 3, 6)
+    assert sm.cur.tolist()[:2] == [0, 1] and sm.duplicates == 1  # the FPR-passing, more certain one kept
+    r = sm.act(np.array([REPLACE, REPLACE, IGNORE]))
+    # object 0: 0.1 m; object 1: 0.6 m, a false label (+0.5)
+    assert sm.cost == pytest.approx(0.1 + 0.6 + 0.5) and r == pytest.approx(1.0 - sm.cost)
+    # frame 2: class 0 again within the gate -> the same slot; fused with the first
+    sm.observe(frame_dets([(0, (0.9, 0.0, 0.5), 9.0, True)]), 0, 1, 6)
+    assert sm.cur.tolist() == [0, -1, -1]
+    sm.act(np.array([FUSE, IGNORE, IGNORE]))
+    assert np.allclose(sm.label[0], [1.0, 0.0, 0.5])
+    # a class-1 detection far from slot 1's anchor opens slot 2; replacing there adds a phantom label
+    sm.observe(frame_dets([(1, (2.05, 1.0, 0.5), 9.0, True)]), 0, 1, 6)
+    assert sm.cur.tolist() == [-1, -1, 0]
+    sm.act(np.array([IGNORE, IGNORE, REPLACE]))
+    # object 1 now takes the nearer label (slot 2, 0.05 m); slot 1's label is matched to nothing
+    assert sm.cost == pytest.approx(0.0 + 0.05 + 0.25)
+
+
+def test_slots_recycle_unlabelled_candidates_when_full():
+    from testbed.envs.slots import IGNORE, REPLACE, SlotMap
+
+    sm = SlotMap(2, 6, np.array([0]), np.array([[1.0, 0.0, 0.5]]))
+    sm.observe(frame_dets([(0, (1.0, 0.0, 0.5), 9.0, True), (1, (3.0, 0.0, 0.5), 50.0, False)]), 0, 2, 6)
+    sm.act(np.array([REPLACE, IGNORE]))  # slot 0 labelled, slot 1 a candidate left unlabelled
+    sm.observe(frame_dets([(2, (0.0, 2.0, 0.5), 9.0, True)]), 0, 1, 6)
+    assert sm.recycled == 1 and sm.cls.tolist() == [0, 2] and sm.cur.tolist() == [-1, 0]
+    obs = sm.slots_obs()
+    assert obs[1, 2 + 2] == 1.0 and obs[1, 2 + 1] == 0.0  # the slot now describes the new class
+    sm.act(np.array([IGNORE, REPLACE]))
+    sm.observe(frame_dets([(3, (5.0, 2.0, 0.5), 9.0, True)]), 0, 1, 6)
+    assert sm.dropped == 1  # every slot holds a label: nothing to recycle

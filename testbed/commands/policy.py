@@ -41,7 +41,7 @@ def register(sub) -> None:
     p.add_argument("--weights", default=None, help="DOPE weights file (default: the shipped ones)")
     p.add_argument("--cache", default=None, help="perception cache folder (default: $DOPESLAM_CACHE or "
                                                    "~/.cache/dopeslam/perception)")
-    p.add_argument("--max-objects", type=int, default=12)
+    p.add_argument("--max-objects", type=int, default=16, help="object slots (candidate objects) per episode")
     p.set_defaults(func=run)
 
 

@@ -43,9 +43,9 @@ class DopeSlamActiveLabellingEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, scenario=None, seeds=None, duration: float | None = None, light: float | None = None,
-                 input_mode: str = "auto", stages: int = 6, weights=None, max_objects: int = 12,
+                 input_mode: str = "auto", stages: int = 6, weights=None, max_objects: int = 16,
                  gate_m: float = 0.5, reward: RewardConfig | dict | None = None, detector_factory=None,
-                 render_mode: str | None = None, max_speed: tuple = (1.0, 2.0)):
+                 render_mode: str | None = None, max_speed: tuple = (1.0, 2.0), renderer: str = "auto"):
         from sim.scenario import DEFAULT_SCENARIO, load_scenario
 
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -59,6 +59,7 @@ class DopeSlamActiveLabellingEnv(gym.Env):
         self.gate_m = float(gate_m)
         self.reward_cfg = RewardConfig(**reward) if isinstance(reward, dict) else (reward or RewardConfig())
         self._factory = detector_factory
+        self.renderer = renderer
         self.classes = catalog_classes()
         self.N = int(max_objects)
         self.observation_space = observation_space(self.N, len(self.classes))
@@ -111,7 +112,8 @@ class DopeSlamActiveLabellingEnv(gym.Env):
             ep_seed = self.seeds[int(self.np_random.integers(len(self.seeds)))]
         else:
             ep_seed = int(self.np_random.integers(2 ** 31 - 1))
-        self.ep = ep = Episode(self.scenario, seed=ep_seed, duration=self.duration, light=self.light)
+        self.ep = ep = Episode(self.scenario, seed=ep_seed, duration=self.duration, light=self.light,
+                               renderer=self.renderer)
         self.command = VelocityCommand()
         ep.follower = self.command
         self.live = pc.LivePerception(ep, self._make_detector(ep), self.classes, self.input_mode, (self.stages,),

@@ -94,6 +94,7 @@ def final_score(slots: SlotMap, objects: list, T_world_map: np.ndarray, classes:
     summary["final_cost"] = float(slots.cost)
     summary["dropped_detections"] = int(slots.dropped)
     summary["duplicate_detections"] = int(slots.duplicates)
+    summary["recycled_slots"] = int(slots.recycled)
     return {"summary": summary, "labels": rows}
 
 
@@ -151,10 +152,10 @@ class DopeSlamLabellingEnv(gym.Env):
 
     def __init__(self, scenario=None, seeds=(0,), duration: float | None = None, light: float | None = None,
                  input_mode: str = "auto", stages: int = 6, weights=None, stage_choice: bool = False,
-                 max_objects: int = 12, gate_m: float = 0.5, reward: RewardConfig | dict | None = None,
+                 max_objects: int = 16, gate_m: float = 0.5, reward: RewardConfig | dict | None = None,
                  cache_dir=None, detector_factory=None, detector_id: str | None = None,
                  detector_stages=None, render_mode: str | None = None, thumb=pc.DEFAULT_THUMB,
-                 build: bool = True):
+                 build: bool = True, renderer: str = "auto"):
         from sim.scenario import DEFAULT_SCENARIO
 
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -170,7 +171,7 @@ class DopeSlamLabellingEnv(gym.Env):
         self.input_mode, self.stages = input_mode, int(stages)
         self.gate_m = float(gate_m)
         self.reward_cfg = RewardConfig(**reward) if isinstance(reward, dict) else (reward or RewardConfig())
-        self.cache_dir, self.thumb, self.build = cache_dir, tuple(thumb), build
+        self.cache_dir, self.thumb, self.build, self.renderer = cache_dir, tuple(thumb), build, renderer
         self._factory, self._detector_id = detector_factory, detector_id
         if detector_factory is not None and not detector_id:
             raise ValueError("detector_id: a custom detector_factory needs an identity for the cache key")
@@ -208,7 +209,7 @@ class DopeSlamLabellingEnv(gym.Env):
             det_id = self._detector_id
         else:
             det_id = pc.dope_detector_id(input_mode, self.weights)
-        return pc.make_spec(sc, seed, self.duration, self.light, input_mode, kept, det_id, self.thumb)
+        return pc.make_spec(sc, seed, self.duration, self.light, input_mode, kept, det_id, self.thumb, self.renderer)
 
     def replay_for(self, i: int) -> Replay:
         if i not in self._replays:

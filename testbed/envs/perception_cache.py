@@ -88,6 +88,7 @@ class PerceptionSpec:
     stages: tuple  # stage counts kept (all of 1..6 when the detector gives them from one pass)
     detector: str  # detector identity: kind and weights hash
     thumb: tuple = DEFAULT_THUMB
+    renderer: str = "auto"  # sim.camera renderer: auto (EGL when it loads) | egl | tiny
     version: int = CACHE_VERSION
 
     def key(self) -> str:
@@ -106,11 +107,13 @@ class PerceptionSpec:
     def from_dict(d: dict) -> "PerceptionSpec":
         return PerceptionSpec(str(d["scenario"]), str(d["scenario_sha"]), int(d["seed"]), float(d["light"]),
                               float(d["duration"]), str(d["input"]), tuple(int(s) for s in d["stages"]),
-                              str(d["detector"]), tuple(int(v) for v in d["thumb"]), int(d["version"]))
+                              str(d["detector"]), tuple(int(v) for v in d["thumb"]), str(d.get("renderer", "auto")),
+                              int(d["version"]))
 
 
 def make_spec(scenario, seed: int | None = None, duration: float | None = None, light: float | None = None,
-              input_mode: str = "rgb", stages=(6,), detector_id: str = "", thumb=DEFAULT_THUMB) -> PerceptionSpec:
+              input_mode: str = "rgb", stages=(6,), detector_id: str = "", thumb=DEFAULT_THUMB,
+              renderer: str = "auto") -> PerceptionSpec:
     """The spec of an episode; ``scenario`` is a bundled name, a TOML path or a Scenario."""
     from sim.scenario import Scenario, load_scenario
 
@@ -126,7 +129,7 @@ def make_spec(scenario, seed: int | None = None, duration: float | None = None, 
         scenario=sc.name, scenario_sha=hashlib.sha256(sc.model_dump_json().encode()).hexdigest()[:16],
         seed=sc.seed if seed is None else int(seed), light=float(sc.light if light is None else light),
         duration=float(sc.duration if duration is None else duration), input=input_mode, stages=stages,
-        detector=detector_id, thumb=(int(thumb[0]), int(thumb[1])))
+        detector=detector_id, thumb=(int(thumb[0]), int(thumb[1])), renderer=str(renderer))
 
 
 # --- The pipeline: sim -> odometry -> DOPE -> fusion, one camera frame at a time ------------------
@@ -285,6 +288,7 @@ class Perception:
 def _atomic(path: Path):
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
+    os.chmod(tmp, 0o644)  # mkstemp makes it 0600
     try:
         yield Path(tmp)
         os.replace(tmp, path)
@@ -349,7 +353,7 @@ def build(spec: PerceptionSpec, detector_factory: DetectorFactory, folder=None, 
     det_cols: dict[str, list] = {k: [] for k in DET_FIELDS}
     det_frame, det_stage = [], []
     jpeg, offsets = [], [0]
-    with Episode(sc, seed=spec.seed, duration=spec.duration, light=spec.light) as ep:
+    with Episode(sc, seed=spec.seed, duration=spec.duration, light=spec.light, renderer=spec.renderer) as ep:
         if ep.sc.name != spec.scenario:
             raise ValueError(f"scenario {ep.sc.name!r} does not match the spec's {spec.scenario!r}")
         live = LivePerception(ep, detector_factory(ep), classes, spec.input, spec.stages)

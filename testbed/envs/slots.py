@@ -2,8 +2,11 @@
 
 A *slot* is one candidate object in the map. Each detection is associated with the nearest
 active slot of its class whose anchor (the mean of the detections associated so far) is within
-the gate, or opens the next free slot; association does not depend on the policy, so every
-policy sees the same slots for the same episode. At most one detection per slot per frame: when
+the gate, or opens the next free slot; when none is free, the unlabelled slot seen longest ago is
+recycled (a candidate the policy never labelled: typically a false detection), and only when every
+slot holds a label or a detection of this frame is the detection dropped. Association does not
+depend on the actions until slots run out, so every policy sees the same slots for the same
+episode as long as there are enough of them. At most one detection per slot per frame: when
 two fall into one slot, the one that passed FPR with the lower belief sum is kept.
 
 The policy then decides per slot what the current detection does to that slot's label:
@@ -88,6 +91,9 @@ class SlotMap:
         self.dets: dict | None = None
         self.stage = 0
         self.dropped = 0  # detections with no free slot
+        self.recycled = 0  # unlabelled slots given to a new candidate
+        self.frame_no = 0
+        self.last_seen = [-1] * N
         self.duplicates = 0  # second detections of a slot in one frame
         self.cost = self._cost()
         names = slot_features(self.C)
@@ -101,6 +107,7 @@ class SlotMap:
     def observe(self, dets: dict, lo: int, hi: int, stage: int) -> None:
         """Make detections lo..hi-1 of ``dets`` the current ones, associating each with a slot."""
         self.dets, self.stage = dets, stage
+        self.frame_no += 1
         cur, o = self.cur, self._obs
         for j in self._present:
             cur[j] = -1
@@ -123,11 +130,14 @@ class SlotMap:
                 if d2 <= best:
                     j, best = k, d2
             if j < 0:
-                if not self.n_free:
-                    self.dropped += 1
-                    continue
-                j = self.N - self.n_free
-                self.n_free -= 1
+                if self.n_free:
+                    j = self.N - self.n_free
+                    self.n_free -= 1
+                else:
+                    j = self._recycle()
+                    if j < 0:
+                        self.dropped += 1
+                        continue
                 self.cls[j] = c
                 self.class_slots.setdefault(c, []).append(j)
                 o[j, 1] = 1.0
@@ -140,6 +150,7 @@ class SlotMap:
             else:
                 self._present.append(j)
             cur[j] = i
+            self.last_seen[j] = self.frame_no
             a = self.anchor_sum[j]
             a[0] += x
             a[1] += y
@@ -156,6 +167,23 @@ class SlotMap:
             if self.has[j]:
                 lx, ly, lz = self.label[j]
                 o[j, self._lab0 + 6] = math.sqrt((x - lx) ** 2 + (y - ly) ** 2 + (z - lz) ** 2)
+
+    def _recycle(self) -> int:
+        """Free the unlabelled slot seen longest ago (not one of this frame's); -1 if there is none."""
+        j, oldest = -1, self.frame_no
+        for k in range(self.N):
+            if not self.has[k] and self.cur[k] < 0 and self.last_seen[k] < oldest:
+                j, oldest = k, self.last_seen[k]
+        if j < 0:
+            return -1
+        self.class_slots[int(self.cls[j])].remove(j)
+        self.cls[j] = -1
+        self.anchor_sum[j] = [0.0, 0.0, 0.0]
+        self.n_dets[j] = 0
+        self.ev_n[j] = 0
+        self._obs[j] = 0.0
+        self.recycled += 1
+        return j
 
     # --- actions ---------------------------------------------------------------------------------
     def act(self, labels: np.ndarray) -> float:
