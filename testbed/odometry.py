@@ -1,0 +1,198 @@
+"""``dopeslam odometry``: one episode's LiDAR odometry (KISS-ICP) and wheel odometry scored against
+the simulator's ground truth.
+
+Outputs in ``out_dir``:
+
+* ``odometry.json``: ``ate_rmse_m`` (estimate placed in ``world`` by the known start pose),
+  ``ate_rmse_umeyama_m`` (SE(3)-aligned, as ``evo_ape -a``), ``rpe_trans_pct``,
+  ``rpe_rot_deg_per_m`` (over 1 m of travel, see ``stack.metrics``), ``scans``, ``odometry_hz``,
+  and the same figures for wheel odometry under ``wheel_odometry``;
+* ``estimate_tum.txt`` and ``groundtruth_tum.txt``: the same timestamps, both in ``world``, so that
+  ``evo_ape tum groundtruth_tum.txt estimate_tum.txt`` prints our ``ate_rmse_m`` (and with ``-a``
+  our ``ate_rmse_umeyama_m``); ``wheel_odometry_tum.txt`` likewise for the wheels;
+* ``odometry_topdown.png``: both trajectories over the accumulated LiDAR map.
+
+The known start pose: ``map`` is ``base_link`` at the first registered scan, so the estimate goes to
+``world`` through the true ``T_world_base`` at that scan's pose stamp.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sim.episode import Episode
+from stack import metrics
+from stack.lidar_slam import LidarOdometry, LidarOdometryConfig, WheelOdometryTrack
+from stack.messages import LidarScan, WheelOdometry
+from stack.transforms import transform_points
+
+log = logging.getLogger(__name__)
+
+RPE_DELTA_M = 1.0
+MAP_VOXEL_M = 0.05  # resolution of the accumulated map drawn under the trajectories
+
+
+def score(stamps: np.ndarray, T_map_base: np.ndarray, T_world_base_gt: np.ndarray) -> dict:
+    """ATE / RPE of a trajectory already matched in time to its ground truth (map placed by gt[0])."""
+    est = T_world_base_gt[0] @ T_map_base
+    r = metrics.rpe(est, T_world_base_gt, RPE_DELTA_M)
+    length = float(metrics.path_length(T_world_base_gt)[-1])
+    return {
+        "ate_rmse_m": metrics.ate_rmse(est, T_world_base_gt),
+        "ate_rmse_umeyama_m": metrics.ate_rmse_umeyama(est, T_world_base_gt) if len(est) >= 3 else float("nan"),
+        "rpe_trans_pct": r.trans_pct,
+        "rpe_rot_deg_per_m": r.rot_deg_per_m,
+        "rpe_delta_m": r.delta_m,
+        "rpe_pairs": r.pairs,
+        "path_length_m": length,
+        "final_error_m": float(np.linalg.norm(est[-1, :3, 3] - T_world_base_gt[-1, :3, 3])),
+    }
+
+
+class _MapAccumulator:
+    """Registered scans in ``map``, thinned to one point per voxel."""
+
+    def __init__(self, voxel: float = MAP_VOXEL_M, compact_every: int = 500_000):
+        self.voxel = voxel
+        self.compact_every = compact_every
+        self.chunks: list[np.ndarray] = []
+        self.count = 0
+
+    def add(self, points_map: np.ndarray) -> None:
+        self.chunks.append(points_map)
+        self.count += len(points_map)
+        if self.count > self.compact_every:
+            self._compact()
+
+    def _compact(self) -> None:
+        if not self.chunks:
+            return
+        pts = np.concatenate(self.chunks)
+        _, first = np.unique(np.floor(pts / self.voxel).astype(np.int64), axis=0, return_index=True)
+        self.chunks = [pts[first]]
+        self.count = len(first)
+
+    def points(self) -> np.ndarray:
+        self._compact()
+        return self.chunks[0] if self.chunks else np.empty((0, 3))
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _topdown_png(path: Path, map_world: np.ndarray, gt: np.ndarray, est: np.ndarray,
+                 wheel: np.ndarray | None, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 7))
+    if len(map_world):
+        keep = (map_world[:, 2] > 0.05) & (map_world[:, 2] < 2.0)  # walls and furniture, not floor/ceiling
+        ax.scatter(map_world[keep, 0], map_world[keep, 1], s=0.2, c="0.55", lw=0)
+        ax.plot([], [], ".", color="0.55", label="LiDAR map (placed by the estimate)")
+    ax.plot(gt[:, 0, 3], gt[:, 1, 3], "k-", lw=2.0, label="ground truth")
+    ax.plot(est[:, 0, 3], est[:, 1, 3], "-", color="tab:red", lw=1.2, label="KISS-ICP odometry")
+    if wheel is not None and len(wheel):
+        ax.plot(wheel[:, 0, 3], wheel[:, 1, 3], "--", color="tab:blue", lw=1.0, label="wheel odometry")
+    ax.plot(gt[0, 0, 3], gt[0, 1, 3], "go", ms=6, label="start")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m, world)")
+    ax.set_ylabel("y (m, world)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="lower left", fontsize=7, framealpha=0.8)
+    fig.tight_layout()
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".png", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110)
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def run_odometry(scenario=None, seed: int | None = None, out_dir: str | os.PathLike = "out/odometry",
+                 duration: float | None = None, wheel: bool = True, config: LidarOdometryConfig | None = None,
+                 T_base_velodyne: np.ndarray | None = None, plot: bool = True) -> dict:
+    """Run an episode with the LiDAR (no camera), odometry on every scan, score, write the outputs.
+
+    ``T_base_velodyne`` overrides the extrinsic the odometry is given (the episode's otherwise), to
+    show what a miscalibrated robot does. Returns the ``odometry.json`` contents.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    wall0 = time.perf_counter()
+    with Episode(scenario, seed=seed, duration=duration, camera=False, lidar=True) as ep:
+        E = ep.T_base_velodyne if T_base_velodyne is None else np.asarray(T_base_velodyne, dtype=float)
+        odo = LidarOdometry(E, config)
+        track = WheelOdometryTrack() if wheel else None
+        accumulated = _MapAccumulator()
+        last_report = time.perf_counter()
+        for msg in ep.frames():
+            if isinstance(msg, LidarScan):
+                T_map_base = odo.process(msg)
+                if T_map_base is not None and odo.last_points_base is not None:
+                    accumulated.add(transform_points(T_map_base, odo.last_points_base))
+            elif isinstance(msg, WheelOdometry) and track is not None:
+                track.add(msg)
+            if time.perf_counter() - last_report > 10.0:
+                last_report = time.perf_counter()
+                log.info("odometry: sim t = %.1f / %.1f s, %d scans, %.1f scans/s", msg.stamp, ep.duration,
+                         odo.stats.scans_in, odo.stats.hz)
+        if len(odo) < 2:
+            raise RuntimeError(f"{ep.sc.name}: only {len(odo)} scans registered; nothing to score")
+        stamps, T_map_base = odo.trajectory()
+        gt = ep.T_world_base_at(stamps)
+        T_world_map = gt[0]
+        est = T_world_map @ T_map_base
+        report = {"scenario": ep.sc.name, "seed": ep.seed, "sim_seconds": float(ep.duration)}
+        report.update(score(stamps, T_map_base, gt))
+        report.update({
+            "scans": odo.stats.scans_in,
+            "scans_registered": odo.stats.scans_used,
+            "odometry_hz": odo.stats.hz,
+            "odometry_seconds": odo.stats.seconds,
+            "episode_wall_seconds": time.perf_counter() - wall0,
+            "map_origin_offset_m": float(np.linalg.norm(T_world_map[:3, 3] - ep.T_world_map[:3, 3])),
+            "warnings": {k: v for k, v in vars(odo.stats).items() if k not in ("scans_in", "scans_used", "seconds")},
+            "config": odo.config.model_dump(),
+        })
+        metrics.write_tum(out / "estimate_tum.txt", stamps, est)
+        metrics.write_tum(out / "groundtruth_tum.txt", stamps, gt)
+
+        wheel_world = None
+        if track is not None and len(track) >= 2:
+            w_stamps, w_poses = track.trajectory()
+            w_gt = ep.T_world_base_at(w_stamps)
+            report["wheel_odometry"] = {"messages": len(track), **score(w_stamps, w_poses, w_gt)}
+            wheel_world = w_gt[0] @ w_poses
+            metrics.write_tum(out / "wheel_odometry_tum.txt", w_stamps, wheel_world)
+            metrics.write_tum(out / "wheel_groundtruth_tum.txt", w_stamps, w_gt)
+
+        if plot:
+            title = (f"{ep.sc.name} seed {ep.seed}: KISS-ICP ATE {100 * report['ate_rmse_m']:.1f} cm, "
+                     f"RPE {report['rpe_trans_pct']:.2f} %")
+            if "wheel_odometry" in report:
+                title += f"; wheels ATE {100 * report['wheel_odometry']['ate_rmse_m']:.1f} cm"
+            _topdown_png(out / "odometry_topdown.png", transform_points(T_world_map, accumulated.points()),
+                         gt, est, wheel_world, title)
+    _atomic_write_text(out / "odometry.json", json.dumps(report, indent=2) + "\n")
+    return report
