@@ -436,3 +436,18 @@ def test_slots_recycle_unlabelled_candidates_when_full():
     sm.act(np.array([IGNORE, REPLACE]))
     sm.observe(frame_dets([(3, (5.0, 2.0, 0.5), 9.0, True)]), 0, 1, 6)
     assert sm.dropped == 1  # every slot holds a label: nothing to recycle
+
+
+@pytest.mark.slow
+def test_prebuild_builds_episode_caches_in_worker_processes(tmp_path):
+    from testbed.commands.policy import prebuild
+
+    kw = {k: v for k, v in env_kwargs(tmp_path, duration=0.5).items() if k not in ("scenario", "seeds")}
+    stems = prebuild([SCENE], [7, 8], kw, jobs=2)
+    assert len(set(stems)) == 2
+    factory = CountingFactory()
+    env = gymnasium.make("DopeSlamLabelling-v0", **env_kwargs(tmp_path, duration=0.5, seeds=[7, 8],
+                                                              detector_factory=factory))
+    for i in range(2):
+        env.reset(options={"episode": i})
+    assert factory.calls == 0  # both were read from the cache the workers wrote

@@ -42,6 +42,7 @@ def register(sub) -> None:
     p.add_argument("--cache", default=None, help="perception cache folder (default: $DOPESLAM_CACHE or "
                                                    "~/.cache/dopeslam/perception)")
     p.add_argument("--max-objects", type=int, default=16, help="object slots (candidate objects) per episode")
+    p.add_argument("--jobs", type=int, default=1, help="build missing episode caches in this many processes")
     p.set_defaults(func=run)
 
 
@@ -58,11 +59,48 @@ def run(args) -> int:
     scenarios = args.scenario or bundled_scenarios()
     env_kwargs = {"duration": args.duration, "input_mode": args.input_mode, "stages": args.stages,
                   "weights": args.weights, "cache_dir": args.cache, "max_objects": args.max_objects}
-    result = evaluate(names, scenarios, range(args.first_seed, args.first_seed + args.episodes), env_kwargs)
+    seeds = range(args.first_seed, args.first_seed + args.episodes)
+    if args.jobs > 1:
+        prebuild(scenarios, seeds, env_kwargs, args.jobs)
+    result = evaluate(names, scenarios, seeds, env_kwargs)
     paths = write_outputs(result, args.out)
     print(table_markdown(result))
     print(f"wrote {paths[0]} and {paths[1]}")
     return 0
+
+
+def _build_one(scenario, seed: int, env_kwargs: dict) -> str:
+    """Worker: build (or find) one episode's cache; returns its file stem."""
+    from testbed.envs.labelling import DopeSlamLabellingEnv
+
+    env = DopeSlamLabellingEnv(scenario=scenario, seeds=[seed], **env_kwargs)
+    return env.replay_for(0).perception.spec.stem()
+
+
+def _one_thread() -> None:
+    """Worker start: one math-library thread each (the workers already use the cores), before torch loads."""
+    import os
+
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = "1"
+
+
+def prebuild(scenarios, seeds, env_kwargs: dict, jobs: int) -> list[str]:
+    """Build the perception caches of every (scenario, seed) in ``jobs`` processes (each runs its own
+    simulation, odometry and DOPE); episodes already cached are only read."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    work = [(sc, int(s)) for sc in scenarios for s in seeds]
+    log.info("building %d episode caches in %d processes", len(work), jobs)
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_one_thread) as pool:
+        futures = [pool.submit(_build_one, sc, s, env_kwargs) for sc, s in work]
+        stems = []
+        for (sc, s), f in zip(work, futures):
+            stems.append(f.result())
+            log.info("cached %s seed %d (%d of %d)", sc, s, len(stems), len(work))
+    return stems
 
 
 def evaluate(names: list[str], scenarios: list[str], seeds, env_kwargs: dict) -> dict:

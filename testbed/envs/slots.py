@@ -26,6 +26,7 @@ return is the initial cost (every object missing) less the final one.
 """
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -80,6 +81,8 @@ class SlotMap:
         self.anchor_sum = [[0.0, 0.0, 0.0] for _ in range(N)]
         self.n_dets = [0] * N
         self.has = np.zeros(N, dtype=bool)
+        self._labelled: set[int] = set()  # slots with a label (mirror of ``has``)
+        self._labelled_by_class: dict[int, list[int]] = {}
         self.label = np.zeros((N, 3))
         self.label_belief = np.zeros(N)
         self.label_err = np.full(N, np.nan)
@@ -108,6 +111,7 @@ class SlotMap:
         """Make detections lo..hi-1 of ``dets`` the current ones, associating each with a slot."""
         self.dets, self.stage = dets, stage
         self.frame_no += 1
+        can_recycle = True  # until a search finds nothing (it cannot find more later in this frame)
         cur, o = self.cur, self._obs
         for j in self._present:
             cur[j] = -1
@@ -134,8 +138,9 @@ class SlotMap:
                     j = self.N - self.n_free
                     self.n_free -= 1
                 else:
-                    j = self._recycle()
+                    j = self._recycle() if can_recycle else -1
                     if j < 0:
+                        can_recycle = False
                         self.dropped += 1
                         continue
                 self.cls[j] = c
@@ -171,8 +176,9 @@ class SlotMap:
     def _recycle(self) -> int:
         """Free the unlabelled slot seen longest ago (not one of this frame's); -1 if there is none."""
         j, oldest = -1, self.frame_no
+        cur = self.cur.tolist()
         for k in range(self.N):
-            if not self.has[k] and self.cur[k] < 0 and self.last_seen[k] < oldest:
+            if k not in self._labelled and cur[k] < 0 and self.last_seen[k] < oldest:
                 j, oldest = k, self.last_seen[k]
         if j < 0:
             return -1
@@ -213,7 +219,10 @@ class SlotMap:
                 self.label_belief[j] = dets["belief_list"][i]
             else:
                 self.label[j], self.label_belief[j] = _robust_mean(self._ev[j, :n + 1], self._ev_belief[j, :n + 1])
-            self.has[j] = True
+            if j not in self._labelled:
+                self.has[j] = True
+                self._labelled.add(j)
+                bisect.insort(self._labelled_by_class.setdefault(int(self.cls[j]), []), j)  # id order, as score_labels
             changed.append(j)
         if not changed:
             return 0.0
@@ -250,15 +259,15 @@ class SlotMap:
                     e = math.inf
                 D[k][j] = e
             self.label_err[j] = best
-        labelled = [j for j in range(self.N) if self.has[j]]
-        if not labelled:
+        if not self._labelled:
             return K * r.missing_cost_m
         used = set()
         cost, matched = 0.0, 0
+        by_class = self._labelled_by_class
         for k in range(K):
             row = D[k]
             best, m = math.inf, -1
-            for j in labelled:
+            for j in by_class.get(self._truth_cls[k], ()):
                 e = row[j]
                 if e < best and j not in used:
                     best, m = e, j
@@ -268,7 +277,7 @@ class SlotMap:
             used.add(m)
             matched += 1
             cost += best + (r.false_label_penalty if best > FALSE_LABEL_M else 0.0)
-        return cost + r.extra_label_penalty * (len(labelled) - matched)
+        return cost + r.extra_label_penalty * (len(self._labelled) - matched)
 
     def errors_to_truth(self, xyz: np.ndarray, cls: np.ndarray) -> np.ndarray:
         """Distance of each position to the nearest true object of its class (inf if none)."""
