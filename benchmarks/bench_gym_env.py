@@ -6,7 +6,8 @@ The episode's perception is built first if it is not cached (minutes with DOPE).
 double`` uses the noisy ground-truth test double of the test suite instead of DOPE (for machines
 without trained weights; the step rate depends on the number of detections per frame, not on
 where they come from). Measured through ``gymnasium.make`` (with its wrappers), one env, each
-policy choosing the action; ``random`` samples the action space. Prints a table.
+policy choosing the action; ``random`` samples the action space. Prints a table of steps per wall
+second and per CPU second of this process (the rate one free core gives, when others share them).
 """
 from __future__ import annotations
 
@@ -35,9 +36,10 @@ def env_for(args):
     return gymnasium.make("DopeSlamLabelling-v0", **kw)
 
 
-def measure(env, policy, seconds: float) -> tuple[float, int]:
+def measure(env, policy, seconds: float) -> tuple[float, int, float]:
+    """(steps per wall second, steps, steps per CPU second of this process)."""
     actions = [env.action_space.sample() for _ in range(256)]
-    n, t0 = 0, time.perf_counter()
+    n, t0, c0 = 0, time.perf_counter(), time.process_time()
     while time.perf_counter() - t0 < seconds:
         obs, info = env.reset(options={"episode": 0})
         if policy is not None:
@@ -48,7 +50,7 @@ def measure(env, policy, seconds: float) -> tuple[float, int]:
             obs, r, term, trunc, info = env.step(a)
             n += 1
             done = term or trunc
-    return n / (time.perf_counter() - t0), n
+    return n / (time.perf_counter() - t0), n, n / max(time.process_time() - c0, 1e-9)
 
 
 def main(argv=None) -> int:
@@ -72,14 +74,16 @@ def main(argv=None) -> int:
     env.action_space.seed(0)
     print(f"episode: {replay.perception.spec.scenario} seed {replay.perception.spec.seed}, {replay.n_frames} frames, "
           f"{n_det} detections at {replay.default_stage} stages ({args.detector}); load/build {load_s:.1f} s")
-    print(f"{'policy':<14} {'steps/s':>9} {'steps':>8}")
-    rates = {}
+    print(f"{'policy':<14} {'steps/s':>9} {'steps/cpu-s':>12} {'steps':>8}")
+    rates, cpu_rates = {}, {}
     for name in ["random"] + list(BASELINES):
-        rate, n = measure(env, None if name == "random" else make_policy(name, env), args.seconds)
-        rates[name] = rate
-        print(f"{name:<14} {rate:>9.0f} {n:>8d}")
+        rate, n, cpu_rate = measure(env, None if name == "random" else make_policy(name, env), args.seconds)
+        rates[name], cpu_rates[name] = rate, cpu_rate
+        print(f"{name:<14} {rate:>9.0f} {cpu_rate:>12.0f} {n:>8d}")
     worst = min(rates, key=rates.get)
-    print(f"slowest: {worst} at {rates[worst]:.0f} steps/s (target >= 2000): {'ok' if rates[worst] >= 2000 else 'BELOW'}")
+    print(f"slowest: {worst} at {rates[worst]:.0f} steps/s wall, {cpu_rates[worst]:.0f} per CPU second "
+          f"(target >= 2000): {'ok' if rates[worst] >= 2000 else 'BELOW'} "
+          "(wall rates fall when other processes share the cores; the CPU-second rate is what one free core gives)")
     env.close()
     return 0
 
