@@ -200,20 +200,23 @@ def belief_sum(belief_cls: np.ndarray) -> float:
     return float(np.clip(belief_cls, 0, None).sum())
 
 
-def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_positives: int | None = None) -> dict:
+def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_positives: int | None = None,
+                        fallback: bool = False) -> dict:
     """The belief-sum threshold with the largest recall whose precision is at least ``target_precision``.
 
     ``scores``: belief sums of a calibration set's predictions; ``correct``: whether each is a true
     detection. A prediction passes when its score <= threshold. Recall is passed-correct over
     ``n_positives`` (default: all correct predictions). Cuts are only placed between distinct scores.
-    Returns {threshold, precision, recall, passed}; threshold = -inf when no cut reaches the target.
+    Returns {threshold, precision, recall, passed, target_met}. When no cut reaches the target the
+    threshold is -inf (nothing passes), or with ``fallback`` the cut of highest precision among those
+    passing at least a tenth of the correct predictions (``target_met`` False).
     """
     s = np.asarray(scores, dtype=float)
     c = np.asarray(correct, dtype=bool)
     if s.shape != c.shape:
         raise ValueError(f"scores ({s.shape}) and correct ({c.shape}) differ in shape")
     n_pos = int(c.sum()) if n_positives is None else int(n_positives)
-    best = {"threshold": -math.inf, "precision": 1.0, "recall": 0.0, "passed": 0}
+    best = {"threshold": -math.inf, "precision": 1.0, "recall": 0.0, "passed": 0, "target_met": True}
     if len(s) == 0:
         return best
     order = np.argsort(s, kind="stable")
@@ -227,7 +230,14 @@ def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_posi
         if rec > best["recall"] or (rec == best["recall"] and best["passed"] == 0):
             nxt = s[i + 1] if i + 1 < len(s) else s[i] + 1.0
             best = {"threshold": float(0.5 * (s[i] + nxt)), "precision": float(prec[i]), "recall": float(rec),
-                    "passed": int(n[i])}
+                    "passed": int(n[i]), "target_met": True}
+    if best["passed"] == 0 and fallback and n_pos > 0:
+        ok = np.nonzero(last_of_value & (tp >= max(1, 0.1 * n_pos)))[0]
+        if len(ok):
+            i = int(ok[np.lexsort((-tp[ok], -prec[ok]))[0]])
+            nxt = s[i + 1] if i + 1 < len(s) else s[i] + 1.0
+            best = {"threshold": float(0.5 * (s[i] + nxt)), "precision": float(prec[i]),
+                    "recall": float(tp[i] / n_pos), "passed": int(n[i]), "target_met": False}
     return best
 
 
@@ -260,7 +270,8 @@ class FprThresholds:
         self.overrides[cls][str(stages)] = float(threshold)
 
     @staticmethod
-    def calibrate(records, target_precision: float = 0.995, meta: dict | None = None) -> "FprThresholds":
+    def calibrate(records, target_precision: float = 0.995, meta: dict | None = None,
+                  fallback: bool = True) -> "FprThresholds":
         """From records (cls, stages, belief_sum, correct): per (cls, stages) the threshold of
         :func:`calibrate_threshold`. Returns the table with per-entry precision/recall in ``meta``."""
         groups: dict = {}
@@ -269,7 +280,7 @@ class FprThresholds:
         table, stats = {}, {}
         for (cls, st), rows in sorted(groups.items()):
             sc, ok = zip(*rows)
-            r = calibrate_threshold(sc, ok, target_precision)
+            r = calibrate_threshold(sc, ok, target_precision, fallback=fallback)
             table.setdefault(cls, {})[str(st)] = r["threshold"]
             stats.setdefault(cls, {})[str(st)] = {**r, "n": len(rows), "n_correct": int(sum(ok))}
         return FprThresholds(table, math.inf, {}, {"target_precision": target_precision, "stats": stats, **(meta or {})})

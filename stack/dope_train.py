@@ -10,7 +10,8 @@ Checkpoints (model + optimiser + step + loss history) are written atomically eve
 ``checkpoint_minutes`` and on exit; a run resumes from its checkpoint. Each checkpoint also writes
 half-precision weights (what ships), a loss-curve PNG and an evaluation on held-out images (the
 per-corner key-point error in pixels at the network's 320x240 input). New shards appearing in the
-data directory while training runs are picked up.
+data directory while training runs are picked up. Creating a file ``STOP`` in the run directory ends
+the run cleanly (final checkpoint written).
 
 This module reads data files but does not import the simulator: it runs on any machine with torch,
 on a GPU when one is present.
@@ -450,6 +451,10 @@ def train(cfg: TrainConfig) -> dict:
 
     try:
         while step < cfg.max_steps and (time.time() - t_start) / 60 < cfg.max_minutes:
+            if (out / "STOP").exists():  # graceful stop: checkpoint and exit
+                log.info("found %s: stopping", out / "STOP")
+                (out / "STOP").unlink()
+                break
             for g in opt.param_groups:
                 g["lr"] = lr_at(step, cfg)
             x, bt, at = sample_batch(data, cfg, rng)

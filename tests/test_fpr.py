@@ -82,3 +82,11 @@ def test_bad_threshold_file_names_the_file(tmp_path):
     p.write_text("{}")
     with pytest.raises(ValueError, match="x.json"):
         FprThresholds.load(p)
+
+
+def test_calibration_fallback_takes_the_most_precise_cut_when_the_target_is_out_of_reach():
+    scores = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    correct = [False, True, True, False, True, False]
+    r = calibrate_threshold(scores, correct, target_precision=0.99, fallback=True)
+    assert not r["target_met"] and r["threshold"] == pytest.approx(3.5)  # 2 of 3 correct: best precision
+    assert r["precision"] == pytest.approx(2 / 3) and r["recall"] == pytest.approx(2 / 3)
