@@ -171,6 +171,7 @@ def run_odometry(scenario=None, seed: int | None = None, out_dir: str | os.PathL
             "odometry_hz": odo.stats.hz,
             "odometry_seconds": odo.stats.seconds,
             "episode_wall_seconds": time.perf_counter() - wall0,
+            "T_base_velodyne": E.tolist(),
             "map_origin_offset_m": float(np.linalg.norm(T_world_map[:3, 3] - ep.T_world_map[:3, 3])),
             "warnings": {k: v for k, v in vars(odo.stats).items() if k not in ("scans_in", "scans_used", "seconds")},
             "config": odo.config.model_dump(),
