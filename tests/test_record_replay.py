@@ -6,6 +6,7 @@ is run live once per module, with a ground-truth detector double, and recorded; 
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -55,6 +56,20 @@ class _Truth:
         return src.image_truth(frame)
 
 
+class _RecordingOracle(OracleDetector):
+    """The oracle, noting what it was shown: stamp, intrinsics, colour pixels, depth in millimetres."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.seen = []
+
+    def detect(self, frame):
+        mm = np.rint(np.asarray(frame.depth_m, dtype=np.float64) * 1000).astype(np.uint16)
+        self.seen.append((round(frame.stamp, 6), frame.info.K.round(9).tolist(),
+                          hashlib.sha1(np.ascontiguousarray(frame.rgb)).hexdigest(), hashlib.sha1(mm).hexdigest()))
+        return super().detect(frame)
+
+
 def short_scenario():
     sc = load_scenario(None)
     sc.sensors.camera_width, sc.sensors.camera_height = 320, 240
@@ -70,25 +85,27 @@ def live(tmp_path_factory):
     bag = root / "episode"
     mp = pytest.MonkeyPatch()
     mp.setattr(sim.episode, "Episode", _CapturingEpisode)
+    detector = _RecordingOracle(_Truth())
     try:
         with BagWriter(bag) as writer:
             report = run_episode(short_scenario(), root / "run", seed=0, duration=DURATION,
-                                 detector=OracleDetector(_Truth()), bag_writer=writer, keep_detections=True)
+                                 detector=detector, bag_writer=writer, keep_detections=True)
     finally:
         mp.undo()
-    return {"root": root, "bag": bag, "report": report, "counts": dict(writer.counts)}
+    return {"root": root, "bag": bag, "report": report, "counts": dict(writer.counts), "detector": detector}
 
 
-def oracle_for(bag_path: Path) -> OracleDetector:
+def oracle_for(bag_path: Path) -> _RecordingOracle:
     with BagReader(bag_path) as bag:
-        return OracleDetector(_Truth(BagImageTruth(bag)))
+        return _RecordingOracle(_Truth(BagImageTruth(bag)))
 
 
 @pytest.fixture(scope="module")
 def replayed(live):
     out = live["root"] / "replay"
-    report = replay_bag(live["bag"], out, detector=oracle_for(live["bag"]), keep_detections=True)
-    return {"out": out, "report": report}
+    detector = oracle_for(live["bag"])
+    report = replay_bag(live["bag"], out, detector=detector, keep_detections=True)
+    return {"out": out, "report": report, "detector": detector}
 
 
 def tum(path: Path) -> np.ndarray:
@@ -104,6 +121,9 @@ def test_replay_reproduces_the_live_run(live, replayed):
     assert np.abs(ta[:, 0] - tb[:, 0]).max() < 1e-6
     assert np.linalg.norm(ta[:, 1:4] - tb[:, 1:4], axis=1).max() < 1e-3
     assert np.abs(tum(run_dir / "groundtruth_tum.txt") - tum(rep_dir / "groundtruth_tum.txt")).max() < 1e-6
+    # the detector is shown the same images: colour bit for bit, depth to the millimetre (16UC1), the
+    # same intrinsics and stamps; so any deterministic detector (DOPE included) detects the same
+    assert live["detector"].seen == replayed["detector"].seen and len(live["detector"].seen) == 81
     # the same labels: ids, classes, positions, observation counts
     sa, sb = list(a["_store"]), list(b["_store"])
     assert len(sa) == 6, "the oracle should label all six objects in this episode"
