@@ -1,0 +1,57 @@
+"""`dopeslam run` end to end on a short drive past the default scenario's objects, with the shipped
+DOPE weights, real KISS-ICP and the real object store."""
+import json
+
+import pytest
+
+from stack.object_store import ObjectStore
+from testbed.cli import main
+
+SHORT = """
+extends = "{base}"
+name = "columns_short"
+duration = 13.0
+[route]
+start_pause = 0.0
+speed = 0.25
+waypoints = [[0.5, 0.0], [3.5, 0.0]]
+[sensors]
+camera_width = 320
+camera_height = 240
+"""
+
+
+@pytest.fixture
+def short_scenario(tmp_path):
+    from sim.scenario import SCENES_DIR
+
+    # a scenario may only extend files in its own folder: copy the base beside it
+    base = tmp_path / "experiment3_columns.toml"
+    base.write_text((SCENES_DIR / "experiment3_columns.toml").read_text())
+    path = tmp_path / "columns_short.toml"
+    path.write_text(SHORT.format(base=base.name))
+    return path
+
+
+@pytest.mark.slow
+def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", str(short_scenario), "--out", str(out), "--seed", "3"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    for key in ("scenario", "seed", "sim_seconds", "wall_seconds", "real_time_factor", "odometry", "detection",
+                "labels", "labels_summary"):
+        assert key in report
+    assert report["odometry"]["ate_rmse_m"] < 0.05
+    s = report["labels_summary"]
+    assert s["objects"] == 6
+    assert s["labelled"] >= 4, report["labels"]
+    assert s["false_labels"] <= 1, report["labels"]
+    assert s["mean_error_m"] < 0.25
+    # the spreadsheet is the store: it loads back with the same objects
+    from sim.objects import load_catalog
+
+    store = ObjectStore.load(out / "labels.xlsx", dims={c: s.dims for c, s in load_catalog().items()})
+    assert len(store) >= s["labelled"]
+    for name in ("map.png", "estimate_tum.txt", "groundtruth_tum.txt", "labels.json"):
+        assert (out / name).stat().st_size > 0
+    assert "mean error" in capsys.readouterr().out
