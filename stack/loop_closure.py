@@ -84,6 +84,8 @@ class LoopClosureConfig(BaseModel):
     max_correction_m: float = Field(0.4, ge=0, description="ICP may move the predicted relative pose by this ...")
     max_correction_per_m: float = Field(0.02, ge=0, description="... plus this per metre of path between them ...")
     max_correction_cap_m: float = Field(2.0, gt=0, description="... up to this")
+    max_place_distance_m: float = Field(3.0, gt=0, description="two key frames further apart than this (after "
+                                        "the drift allowance) are not one place")
     max_rotation_deg: float = Field(4.0, ge=0)
     max_rotation_deg_per_m: float = Field(0.1, ge=0)
     max_rotation_cap_deg: float = Field(15.0, gt=0)
@@ -95,6 +97,13 @@ class LoopClosureConfig(BaseModel):
     odom_sigma_rad_per_rad: float = Field(0.01, ge=0, description="... plus this per radian turned")
     loop_sigma_m: float = Field(0.05, gt=0)
     loop_sigma_rad: float = Field(0.01, gt=0)
+    odom_sigma_per_mps: float = Field(0.3, ge=0, description="odometry edge: translation sigma added per m/s "
+                                      "of speed change (a constant-velocity prediction is worst there)")
+    planar: bool = Field(True, description="ground robot on one floor: registration and loop edges in x, y and "
+                         "yaw only; height, roll and pitch stay the odometry's (it levels on the floor; a small "
+                         "pitch error in a registration would otherwise tilt a long corridor)")
+    planar_sigma_m: float = Field(1.0, gt=0, description="loop-edge sigma of z when planar")
+    planar_sigma_rad: float = Field(0.2, gt=0, description="loop-edge sigma of roll and pitch when planar")
     loop_huber_k: float = Field(3.0, gt=0, description="Huber kernel on loop edges (whitened units)")
     features: FeatureConfig = Field(default_factory=FeatureConfig)
 
@@ -237,9 +246,10 @@ def _exp_se3_small(x: np.ndarray) -> np.ndarray:
 
 def icp_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, T_init: np.ndarray,
                        tree: cKDTree | None = None, max_distances=(1.0, 0.6, 0.3), iterations: int = 30,
-                       damping: float = 1e-3) -> np.ndarray:
+                       damping: float = 1e-3, planar: bool = False) -> np.ndarray:
     """Point-to-plane ICP (Gauss-Newton, Cauchy weights, Levenberg damping) of ``source`` onto ``target``
     from ``T_init`` (target <- source); one round per correspondence distance in ``max_distances``.
+    ``planar``: only x, y and yaw move (height, roll and pitch stay those of ``T_init``).
 
     Point-to-plane rather than KISS-ICP's point-to-point: two scans taken metres apart sample the same
     wall at different densities, and point-to-point slides along a corridor by centimetres to decimetres
@@ -259,10 +269,17 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: n
             p, q, n = p[m], target[idx[m]], target_normals[idx[m]]
             r = np.einsum("ij,ij->i", p - q, n)
             J = np.hstack([np.cross(p, n), n])
+            if planar:
+                J = J[:, 2:5]  # yaw, x, y
             w = 1.0 / (1.0 + (r / scale) ** 2)
             H = J.T @ (J * w[:, None])
             g = J.T @ (w * r)
-            dx = -np.linalg.solve(H + damping * np.trace(H) / 6 * np.eye(6), g)
+            step = -np.linalg.solve(H + damping * np.trace(H) / len(H) * np.eye(len(H)), g)
+            dx = np.zeros(6)
+            if planar:
+                dx[2:5] = step
+            else:
+                dx = step
             T = _exp_se3_small(dx) @ T
             if np.linalg.norm(dx[3:]) < 1e-5 and np.linalg.norm(dx[:3]) < 1e-6:
                 break
@@ -280,10 +297,18 @@ def verify(points_query: np.ndarray, points_cand: np.ndarray, T_init: np.ndarray
     points that land on the candidate's surfaces, and their RMSE; the matched surfaces' normals must
     span both horizontal directions, and the solution must be unique (ICP restarted half a metre off in
     x and in y comes back): a corridor of bare walls lets it slide along itself; the correction to ``T_init`` must be within what odometry drifts over
-    ``path_between_m``.
+    ``path_between_m``. Before any ICP, a candidate the odometry places further away than that
+    allowance plus ``max_place_distance_m`` is rejected as inconsistent with the odometry.
     """
     cfg = config or LoopClosureConfig()
     T_init = np.asarray(T_init, dtype=float)
+    allow_m = min(cfg.max_correction_cap_m, cfg.max_correction_m + cfg.max_correction_per_m * path_between_m)
+    allow_deg = min(cfg.max_rotation_cap_deg, cfg.max_rotation_deg + cfg.max_rotation_deg_per_m * path_between_m)
+    if np.linalg.norm(T_init[:2, 3]) > allow_m + cfg.max_place_distance_m:
+        # the odometry puts them further apart than it can have drifted plus what one place spans:
+        # whatever the images say, this is not a revisit it could register (cheap, before any ICP)
+        return Verification(False, "inconsistent_with_odometry", T_init,
+                            correction_m=float(np.linalg.norm(T_init[:2, 3])))
     pq = np.asarray(points_query, dtype=np.float64).reshape(-1, 3)
     pc = np.ascontiguousarray(np.asarray(points_cand, dtype=np.float64).reshape(-1, 3))
     if len(pq) < cfg.min_points or len(pc) < cfg.min_points:
@@ -292,7 +317,7 @@ def verify(points_query: np.ndarray, points_cand: np.ndarray, T_init: np.ndarray
     tree = cKDTree(pc)
     T = icp_point_to_plane(_voxel_down(pq, cfg.icp_voxel_m), pc, nc, T_init, tree,
                            (cfg.icp_coarse_m, (cfg.icp_coarse_m + cfg.icp_fine_m) / 2, cfg.icp_fine_m),
-                           cfg.icp_max_iterations)
+                           cfg.icp_max_iterations, planar=cfg.planar)
 
     nq = surface_normals(pq) if normals_query is None else normals_query
     with np.errstate(invalid="ignore"):  # NaN normals are not structure
@@ -336,7 +361,7 @@ def verify(points_query: np.ndarray, points_cand: np.ndarray, T_init: np.ndarray
     for dx, dy in ((1, 0), (0, 1)):
         start = make_T(None, (dx * cfg.basin_shift_m, dy * cfg.basin_shift_m, 0.0)) @ T
         Ts = icp_point_to_plane(coarse, pc, nc, start, tree, (2.5 * cfg.basin_shift_m, cfg.icp_fine_m),
-                                cfg.icp_max_iterations // 2)
+                                cfg.icp_max_iterations // 2, planar=cfg.planar)
         ends.append(float(np.linalg.norm(Ts[:3, 3] - T[:3, 3])))
         if ends[-1] > cfg.basin_tolerance_m:
             break
@@ -344,8 +369,6 @@ def verify(points_query: np.ndarray, points_cand: np.ndarray, T_init: np.ndarray
     if out.basin_m > cfg.basin_tolerance_m:
         out.reason = "degenerate"
         return out
-    allow_m = min(cfg.max_correction_cap_m, cfg.max_correction_m + cfg.max_correction_per_m * path_between_m)
-    allow_deg = min(cfg.max_rotation_cap_deg, cfg.max_rotation_deg + cfg.max_rotation_deg_per_m * path_between_m)
     if out.correction_m > allow_m or out.correction_deg > allow_deg:
         out.reason = "inconsistent_with_odometry"
         return out
@@ -568,6 +591,9 @@ class LoopCloser:
             self.closures.append(lc)
             self.stats.accepted += 1
             sig = [cfg.loop_sigma_m] * 3 + [cfg.loop_sigma_rad] * 3
+            if cfg.planar:
+                sig = [cfg.loop_sigma_m, cfg.loop_sigma_m, cfg.planar_sigma_m, cfg.planar_sigma_rad,
+                       cfg.planar_sigma_rad, cfg.loop_sigma_rad]
             self._loop_edges.append((ci, kf.index, v.T_cand_query, np.array(sig)))
             first = first or lc
         return first
@@ -579,6 +605,10 @@ class LoopCloser:
         d = float(np.linalg.norm(T_ab[:3, 3]))
         th = float(np.linalg.norm(Rotation.from_matrix(T_ab[:3, :3]).as_rotvec()))
         st = cfg.odom_sigma_m + cfg.odom_sigma_per_m * d
+        if cfg.odom_sigma_per_mps > 0 and a.index > 0 and b.stamp > a.stamp:
+            p = self.key_frames[a.index - 1]
+            v_before = np.linalg.norm(a.T_odom[:3, 3] - p.T_odom[:3, 3]) / max(a.stamp - p.stamp, 1e-3)
+            st += cfg.odom_sigma_per_mps * abs(d / (b.stamp - a.stamp) - v_before)
         sr = cfg.odom_sigma_rad + cfg.odom_sigma_rad_per_m * d + cfg.odom_sigma_rad_per_rad * th
         return a.index, b.index, T_ab, np.array([st, st, st, sr, sr, sr])
 

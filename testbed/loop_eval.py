@@ -250,14 +250,29 @@ def figure(result: dict, path: Path, title: str) -> None:
 
 def run_loop_eval(scenario: str = DEFAULT_SCENARIO, out_dir: str = "out/loop_eval", seed: int | None = None,
                   duration: float | None = None, vocabulary: str | None = None, branching: int = 10,
-                  depth: int = 3) -> dict:
+                  depth: int = 3, keep_key_frames: bool = False) -> dict:
+    """``keep_key_frames``: save the rendered key frames to OUT/key_frames.npz, and reuse that file
+    (if it is there) instead of simulating again."""
     from testbed.simulate import write_json
     from testbed.vocabulary import key_frame_images
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    cache = out / "key_frames.npz"
     t0 = time.perf_counter()
-    images, stamps, T_wc = key_frame_images(scenario, seed=seed, duration=duration)
+    if keep_key_frames and cache.exists():
+        with np.load(cache, allow_pickle=False) as z:
+            if str(z["scenario"]) != scenario:
+                raise ValueError(f"{cache}: key frames of scenario {str(z['scenario'])!r}, not {scenario!r}")
+            images, stamps, T_wc = list(z["images"]), z["stamps"], z["T_world_camera"]
+        log.info("key frames from %s", cache)
+    else:
+        images, stamps, T_wc = key_frame_images(scenario, seed=seed, duration=duration)
+        if keep_key_frames:
+            tmp = out / "key_frames.tmp.npz"
+            np.savez_compressed(tmp, images=np.array(images), stamps=stamps, T_world_camera=T_wc,
+                                scenario=np.array(scenario))
+            tmp.replace(cache)
     t_sim = time.perf_counter() - t0
     tree = VocabularyTree.load(vocabulary) if vocabulary else None
     result = evaluate(images, stamps, T_wc, tree, branching, depth)
@@ -289,9 +304,10 @@ def main(argv=None) -> int:
     p.add_argument("--vocabulary", default=None, help="a vocabulary .npz (default: trained on the first lap)")
     p.add_argument("--branching", type=int, default=10)
     p.add_argument("--depth", type=int, default=3)
+    p.add_argument("--keep-key-frames", action="store_true", help="save (and reuse) OUT/key_frames.npz")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    r = run_loop_eval(a.scenario, a.out, a.seed, a.duration, a.vocabulary, a.branching, a.depth)
+    r = run_loop_eval(a.scenario, a.out, a.seed, a.duration, a.vocabulary, a.branching, a.depth, a.keep_key_frames)
     print_summary(r)
     print(f"wrote {a.out}/loop_eval.json, loop_eval.png")
     return 0
