@@ -10,7 +10,8 @@
    at the same time (default) and one after the other; wall seconds per second of data. Target <= 1x.
 
     python benchmarks/bench_bags.py [--duration 10] [--repeats 2] [--bag-seconds 60] [--keep DIR [--reuse-bag]]
-                                    [--skip-overhead] [--skip-dope] [--json benchmarks/results/bags.json]
+                                    [--skip-overhead] [--skip-dope] [--dope-every N] [--modes parallel,sequential]
+                                    [--json benchmarks/results/bags.json]
 
 Wall times depend on what else runs: the load average is printed before and after.
 """
@@ -113,14 +114,14 @@ def bench_size(seconds: float, bag: Path) -> dict:
     return summary
 
 
-def bench_replay(bag: Path, out: Path, parallel: bool, skip_dope: bool) -> dict:
+def bench_replay(bag: Path, out: Path, parallel: bool, skip_dope: bool, dope_every: int = 1) -> dict:
     from testbed.replay import replay_bag
 
     detector = _NoDetections() if skip_dope else None
     c0 = _cpu_now()
-    report = replay_bag(bag, out, detector=detector, parallel=parallel)
+    report = replay_bag(bag, out, detector=detector, parallel=parallel, dope_every=dope_every)
     cpu = _cpu_now() - c0
-    return {"parallel": parallel, "dope": not skip_dope, "bag_seconds": report["bag_seconds"],
+    return {"parallel": parallel, "dope": not skip_dope, "dope_every": dope_every, "bag_seconds": report["bag_seconds"],
             "wall_s": report["wall_seconds"], "cpu_s": cpu,
             "wall_per_bag_s": report["wall_seconds"] / report["bag_seconds"],
             "cpu_per_bag_s": cpu / report["bag_seconds"], "time_split_s": report["time_split_s"],
@@ -144,7 +145,8 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-overhead", action="store_true")
     ap.add_argument("--reuse-bag", action="store_true", help="with --keep: replay the bag an earlier run left there")
     ap.add_argument("--skip-dope", action="store_true", help="replay without DOPE (e.g. no weights yet)")
-    ap.add_argument("--modes", default="parallel,sequential", help="replay modes to time")
+    ap.add_argument("--modes", default="parallel,sequential", help="replay modes to time ('' for none)")
+    ap.add_argument("--dope-every", type=int, default=1, help="replay: DOPE on every N-th image")
     ap.add_argument("--json", default=None, help="also write the results here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
@@ -187,11 +189,13 @@ def main(argv=None) -> int:
             print(f"| {topic} | {s['messages'][topic]} | {n / 1e6:.1f} |")
         results["replay"] = []
         print()
-        print(f"Replay of that bag ({'without DOPE' if args.skip_dope else 'DOPE with the shipped weights'}):")
+        dope = "without DOPE" if args.skip_dope else "DOPE with the shipped weights" + \
+            (f" on every {args.dope_every}th image" if args.dope_every > 1 else "")
+        print(f"Replay of that bag ({dope}):")
         print("| passes | wall s | wall s / bag s | CPU s / bag s | odometry s | DOPE s | reading s |")
         print("|---|---:|---:|---:|---:|---:|---:|")
         for mode in [m for m in args.modes.split(",") if m]:
-            r = bench_replay(bag, work / f"replay_{mode}", mode == "parallel", args.skip_dope)
+            r = bench_replay(bag, work / f"replay_{mode}", mode == "parallel", args.skip_dope, args.dope_every)
             results["replay"].append(r)
             ts = r["time_split_s"]
             print(f"| {'at the same time' if r['parallel'] else 'one after the other'} | {r['wall_s']:.1f} | "
