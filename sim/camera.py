@@ -210,6 +210,8 @@ def render_rgbd(client: int, T_world_cam: np.ndarray, info: CameraInfo, light: f
         rgb = apply_color_noise(rgb, light, 0.0, None)
         h = hardware()["d435i"]
         depth = np.where((depth >= h["depth_min"]) & (depth <= h["depth_max"]), depth, 0.0).astype(np.float32)
+    # the D435i reports depth in whole millimetres (16UC1): round as it does, so a bag round trip is exact
+    depth = (np.rint(depth * 1000.0) / 1000.0).astype(np.float32)
     return rgb, depth, seg
 
 
