@@ -12,11 +12,12 @@ what RTAB-Map adds on top of odometry:
    without a description (a black image in the dark, a featureless wall) proposes instead the key
    frames near its current pose estimate (LiDAR-only fallback); ``proximity = "always"`` does both.
 3. **Geometric verification.** The two scans are registered by a point-to-plane ICP (scipy KD-tree,
-   robust weights), starting from the relative pose the corrected odometry predicts. The candidate is
-   accepted only if enough of the query's wall and furniture points land on the candidate's surfaces
-   (inlier fraction, RMSE), the matched surfaces face enough directions and the solution is unique
-   (restarted off to the side, ICP comes back: a bare corridor slides along itself), and the correction is one the odometry could have drifted (bounded
-   by the path driven between the two key frames): a false closure is worse than none.
+   robust weights; x, y and yaw for a ground robot), starting from the relative pose the corrected
+   odometry predicts. The candidate is accepted only if enough of the query's wall and furniture
+   points land on the candidate's surfaces (inlier fraction, RMSE), the matched surfaces face enough
+   directions and the solution is unique (restarted off to the side, ICP comes back: a bare corridor
+   slides along itself), and the correction is one the odometry could have drifted (bounded by the
+   path driven between the two key frames): a false closure is worse than none.
 4. **Pose graph.** Key frames are nodes, consecutive key frames are joined by odometry edges and
    verified candidates by loop edges (Huber kernel); GTSAM's iSAM2 keeps it optimised online, and
    ``finalise`` runs a batch Levenberg-Marquardt at the end of a run.
@@ -295,10 +296,11 @@ def verify(points_query: np.ndarray, points_cand: np.ndarray, T_init: np.ndarray
     Floor and ceiling match anywhere, so the evidence is taken from the *structure*: query points on
     vertical surfaces (walls, furniture). Checks, in order: enough points; the share of structure
     points that land on the candidate's surfaces, and their RMSE; the matched surfaces' normals must
-    span both horizontal directions, and the solution must be unique (ICP restarted half a metre off in
-    x and in y comes back): a corridor of bare walls lets it slide along itself; the correction to ``T_init`` must be within what odometry drifts over
-    ``path_between_m``. Before any ICP, a candidate the odometry places further away than that
-    allowance plus ``max_place_distance_m`` is rejected as inconsistent with the odometry.
+    span both horizontal directions, and the solution must be unique (ICP restarted half a metre off
+    in x and in y comes back): a corridor of bare walls lets it slide along itself; the correction
+    to ``T_init`` must be within what odometry drifts over ``path_between_m``. Before any ICP, a
+    candidate the odometry places further away than that allowance plus ``max_place_distance_m`` is
+    rejected as inconsistent with the odometry.
     """
     cfg = config or LoopClosureConfig()
     T_init = np.asarray(T_init, dtype=float)
@@ -512,7 +514,8 @@ class LoopCloser:
         return {"loop_closures": len(self.closures), "loop_candidates_rejected": self.stats.rejected,
                 "key_frames": self.stats.key_frames, "key_frames_described": self.stats.described,
                 "rejection_reasons": dict(self.stats.rejections),
-                "closures_by_source": {s: sum(c.source == s for c in self.closures) for s in ("appearance", "proximity")},
+                "closures_by_source": {s: sum(c.source == s for c in self.closures)
+                                       for s in ("appearance", "proximity")},
                 "seconds": {k: v for k, v in self.stats.as_dict().items() if k.startswith("seconds")}}
 
     # ------------------------------------------------------------------ internals

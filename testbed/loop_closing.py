@@ -58,7 +58,8 @@ class LoopClosingRun:
         stamp = float(odom.trajectory()[0][-1])
         self.closer.add_scan(stamp, T_map_base, odom.last_points_base)
         if self._scans % self._map_every == 0:
-            self._map.append((stamp, np.asarray(T_map_base, dtype=float), odom.last_points_base[::4].astype(np.float32)))
+            pts = odom.last_points_base[::4].astype(np.float32)
+            self._map.append((stamp, np.asarray(T_map_base, dtype=float), pts))
         self._scans += 1
         self.seconds += time.perf_counter() - t0
 
@@ -122,7 +123,130 @@ class LoopClosingRun:
         return {
             "loop_closures": s["loop_closures"], "loop_candidates_rejected": s["loop_candidates_rejected"],
             "false_loop_closures": len(false), "ate_rmse_odometry_only_m": ate_rmse(T_world_map @ T_odom, gt),
-            "loop_closure": {**s, "false_closures": false, "false_closure_threshold": [FALSE_CLOSURE_M, FALSE_CLOSURE_DEG],
+            "loop_closure": {**s, "false_closures": false,
+                             "false_closure_threshold": [FALSE_CLOSURE_M, FALSE_CLOSURE_DEG],
                              "seconds_total": self.seconds,
                              "closures": [c.as_dict() for c in self.closer.closures]},
         }
+
+
+# ---------------------------------------------------------------------------------------------
+# LiDAR odometry + loop closure on a scenario, without DOPE: the trajectory figures of issue 9
+
+
+def run_loop_closure(scenario: str = "office_loop", out_dir: str = "out/loop_closure", seed: int | None = None,
+                     duration: float | None = None, vocabulary: str | None = None,
+                     config: LoopClosureConfig | None = None) -> dict:
+    """KISS-ICP odometry and the loop closer over an episode; ``loop_closure.json`` and
+    ``loop_closure.png`` (ground truth, odometry, closed-loop trajectory, accepted closures).
+
+    Only the key frames are rendered: the camera runs at its rate / ``keyframe_every`` and every
+    image it gives is a key frame (the same images as one in ten at the full rate)."""
+    from sim.episode import Episode
+    from sim.scenario import load_scenario
+    from stack.lidar_slam import LidarOdometry
+    from stack.messages import LidarScan
+    from stack.metrics import ate_rmse_umeyama, rpe
+    from testbed.simulate import write_json
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = (config or LoopClosureConfig()).model_copy()
+    sc = load_scenario(scenario)
+    sc.sensors.camera_rate = sc.sensors.camera_rate / cfg.keyframe_every
+    cfg.keyframe_every = 1
+    lc = LoopClosingRun(vocabulary, cfg)
+    wall0 = last = time.perf_counter()
+    t_odom = 0.0
+    with Episode(sc, seed=seed, duration=duration) as ep:
+        odom = LidarOdometry(ep.T_base_velodyne)
+        for msg in ep.frames():
+            if isinstance(msg, LidarScan):
+                t0 = time.perf_counter()
+                T = odom.process(msg)
+                t_odom += time.perf_counter() - t0
+                lc.on_scan(odom, T)
+            elif isinstance(msg, CameraFrame):
+                lc.on_image(msg)
+            if time.perf_counter() - last > 30:
+                last = time.perf_counter()
+                log.info("t = %.0f of %.0f s: %d key frames, %d closures, %d rejected", msg.stamp, ep.duration,
+                         lc.closer.stats.key_frames, lc.closer.stats.accepted, lc.closer.stats.rejected)
+        stamps, T_odom = odom.trajectory()
+        T_lc = lc.finish(stamps, T_odom)
+        T_world_map = ep.T_world_base_at(stamps[0])
+        gt = ep.T_world_base_at(stamps)
+        report = {"scenario": ep.sc.name, "seed": ep.seed, "sim_seconds": ep.sim_seconds,
+                  "wall_seconds": time.perf_counter() - wall0, "odometry_seconds": t_odom,
+                  "ate_rmse_m": ate_rmse(T_world_map @ T_lc, gt),
+                  "ate_rmse_umeyama_m": ate_rmse_umeyama(T_world_map @ T_lc, gt),
+                  "ate_rmse_odometry_only_umeyama_m": ate_rmse_umeyama(T_world_map @ T_odom, gt),
+                  "rpe_trans_pct": rpe(T_world_map @ T_lc, gt).trans_pct,
+                  "rpe_trans_pct_odometry_only": rpe(T_world_map @ T_odom, gt).trans_pct,
+                  **lc.summary(stamps, T_odom, T_lc, T_world_map, ep.T_world_base_at)}
+        report["ate_ratio"] = report["ate_rmse_m"] / report["ate_rmse_odometry_only_m"]
+        write_json(out / "loop_closure.json", report)
+        _trajectory_png(out / "loop_closure.png", ep, T_world_map, stamps, T_odom, T_lc, lc, report)
+    return report
+
+
+def _trajectory_png(path, ep, T_world_map, stamps, T_odom, T_lc, lc: LoopClosingRun, report) -> None:
+    from testbed.plots import plt, save
+
+    fig, ax = plt.subplots(figsize=(12, 4.5))
+    for b in ep.world.boxes:
+        if b.half[2] > 0.2 and max(b.half[:2]) < 30:  # furniture, walls (not floor, ceiling)
+            c = transform_points(b.T_world_box, np.array([[sx * b.half[0], sy * b.half[1], 0] for sx, sy in
+                                                          ((-1, -1), (1, -1), (1, 1), (-1, 1), (-1, -1))]))
+            ax.fill(c[:, 0], c[:, 1], color="0.85", lw=0)
+    gt = ep.T_world_base_at(stamps)[:, :2, 3]
+    odo = (T_world_map @ T_odom)[:, :2, 3]
+    cor = (T_world_map @ T_lc)[:, :2, 3]
+    ax.plot(gt[:, 0], gt[:, 1], "g-", lw=1.2, label="ground truth")
+    ax.plot(odo[:, 0], odo[:, 1], "b--", lw=0.8,
+            label=f"LiDAR odometry (ATE {100 * report['ate_rmse_odometry_only_m']:.1f} cm)")
+    ax.plot(cor[:, 0], cor[:, 1], "r-", lw=0.8, label=f"with loop closure (ATE {100 * report['ate_rmse_m']:.1f} cm)")
+    kst = np.array([k.stamp for k in lc.closer.key_frames])
+    kpos = (T_world_map @ np.array(lc.closer.T_opt))[:, :2, 3] if len(kst) else np.zeros((0, 2))
+    for c in lc.closer.closures:
+        a, b = kpos[c.candidate], kpos[c.query]
+        ax.plot([a[0], b[0]], [a[1], b[1]], "-", color="orange" if c.source == "appearance" else "purple", lw=1.5)
+    ax.plot([], [], "-", color="orange", label="closure (retrieval)")
+    ax.plot([], [], "-", color="purple", label="closure (LiDAR proximity)")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m, world)")
+    ax.set_ylabel("y (m, world)")
+    ax.legend(fontsize=7, loc="upper right", ncol=2)
+    ax.set_title(f"{report['scenario']}: {report['loop_closures']} loop closures "
+                 f"({report['false_loop_closures']} false), {report['loop_candidates_rejected']} candidates rejected",
+                 fontsize=9)
+    save(fig, path)
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m testbed.loop_closing",
+                                description="LiDAR odometry with and without loop closure on a scenario")
+    p.add_argument("scenario", nargs="?", default="office_loop")
+    p.add_argument("--out", default="out/loop_closure")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--duration", type=float, default=None)
+    p.add_argument("--vocabulary", default=None, help="vocabulary .npz (default: built from the training scenarios)")
+    p.add_argument("--proximity", choices=["fallback", "always", "never"], default=None)
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    cfg = LoopClosureConfig(**({"proximity": a.proximity} if a.proximity else {}))
+    r = run_loop_closure(a.scenario, a.out, a.seed, a.duration, a.vocabulary, cfg)
+    print(f"{r['scenario']}: {r['sim_seconds']:.0f} s simulated in {r['wall_seconds']:.0f} s; "
+          f"{r['loop_closures']} loop closures ({r['false_loop_closures']} false), "
+          f"{r['loop_candidates_rejected']} candidates rejected")
+    print(f"ATE {100 * r['ate_rmse_m']:.1f} cm with loop closure, {100 * r['ate_rmse_odometry_only_m']:.1f} cm "
+          f"odometry only (ratio {r['ate_ratio']:.2f}); Umeyama-aligned {100 * r['ate_rmse_umeyama_m']:.1f} / "
+          f"{100 * r['ate_rmse_odometry_only_umeyama_m']:.1f} cm")
+    print(f"wrote {a.out}/loop_closure.json, loop_closure.png")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

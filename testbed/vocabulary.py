@@ -47,7 +47,8 @@ def training_scenarios() -> list[str]:
 
 
 def key_frame_images(scenario, keyframe_every: int = 10, duration: float | None = None, seed: int | None = None,
-                     light: float | None = None, lidar: bool = False) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+                     light: float | None = None, lidar: bool = False
+                     ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
     """The key frames of an episode: (RGB images, stamps (N,), T_world_camera (N, 4, 4)).
 
     Renders only the kept images (camera rate divided by ``keyframe_every``)."""
@@ -77,7 +78,8 @@ def build_vocabulary(scenarios: list[str] | None = None, branching: int = 10, de
     """Train (or reuse from the cache) the vocabulary tree; returns the .npz path."""
     scenarios = list(scenarios or training_scenarios())
     features = features or FeatureConfig()
-    key = hashlib.sha1(f"{sorted(scenarios)}/{branching}/{depth}/{seed}/{features.model_dump_json()}".encode()).hexdigest()[:12]
+    inputs = f"{sorted(scenarios)}/{branching}/{depth}/{seed}/{features.model_dump_json()}"
+    key = hashlib.sha1(inputs.encode()).hexdigest()[:12]
     path = Path(out) if out is not None else cache_dir() / f"vocabulary_b{branching}_d{depth}_{key}.npz"
     if path.exists():
         try:

@@ -7,7 +7,7 @@ from sim.lidar import BeamPattern, BoxRayCaster
 from sim.world import Box
 from stack.loop_closure import LoopCloser, LoopClosureConfig, _voxel_down, optimise_pose_graph, verify
 from stack.metrics import ate_rmse
-from stack.transforms import from_xyz_rpy, inv, make_T, transform_points
+from stack.transforms import from_xyz_rpy, inv, make_T
 
 LIDAR_Z = 0.4  # velodyne above base_link in these synthetic worlds
 
