@@ -295,6 +295,7 @@ class FprThresholds:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
         with os.fdopen(fd, "w") as f:
             json.dump(blob, f, indent=1)
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
 
     @staticmethod
@@ -331,7 +332,7 @@ class DopeDetector:
     """
 
     def __init__(self, weights=None, input: str = "rgb", stages: int = 6, fpr: bool = True, dims: dict | None = None,
-                 thresholds=None, input_size: tuple[int, int] = (320, 240), peak_threshold: float = 0.1,
+                 thresholds=None, input_size: tuple[int, int] = (320, 240), peak_threshold: float = 0.3,
                  angle_threshold: float = 0.5, min_corners: int = 4, max_reproj_px: float = 12.0,
                  depth_windows=None, device: str | None = None, threads: int | None = None):
         if input not in ("rgb", "depth"):
