@@ -72,8 +72,10 @@ def main() -> None:
         ("default", default),
         ("no deskew", default.model_copy(update={"deskew": False})),
         ("no floor levelling", default.model_copy(update={"floor_constraint": False})),
-        ("voxel 0.5 m", default.model_copy(update={"voxel_size_m": 0.5})),
         ("voxel 0.15 m", default.model_copy(update={"voxel_size_m": 0.15})),
+        ("voxel 0.2 m", default.model_copy(update={"voxel_size_m": 0.2})),
+        ("voxel 0.25 m", default.model_copy(update={"voxel_size_m": 0.25})),
+        ("voxel 0.35 m", default.model_copy(update={"voxel_size_m": 0.35})),
     ]
     header = f"{'configuration':<20} {'wall ms':>8} {'p95 ms':>7} {'CPU ms':>7} {'scans/s':>8} {'ATE cm':>7} {'RPE %':>6}  load"
     print(header)

@@ -8,12 +8,15 @@ Odometry definitions (poses are 4x4 ``T_world_base`` at matching timestamps):
   least-squares SE(3) alignment of Umeyama (1991) of the estimated positions onto the true ones. The
   latter is what ``evo_ape tum gt.txt est.txt -a`` prints as ``rmse``; the former what it prints
   without ``-a``.
-* RPE (relative pose error) over a travelled distance ``delta_m``: for every pose i take the first
-  later pose j whose ground-truth path length from i is at least ``delta_m``; the relative error is
+* RPE (relative pose error) over a travelled distance ``delta_m``: for every pose i (but only the
+  first of a run of poses where the robot stands still) take the first later pose j whose
+  ground-truth path length from i is at least ``delta_m``; the relative error is
   ``E_ij = inv(inv(G_i) G_j) @ inv(P_i) P_j``. We report the mean over pairs of
   ``|t(E_ij)| / L_ij`` in percent (``trans_pct``) and of ``angle(E_ij) / L_ij`` in deg/m
   (``rot_deg_per_m``), with ``L_ij`` the true path length of the pair (>= delta_m, so a turn on the
-  spot cannot divide by zero). RPE is invariant to the global alignment.
+  spot cannot divide by zero). RPE is invariant to the global alignment. (``evo_rpe --delta 1
+  --delta_unit m --all_pairs`` differs: it takes j closest to ``delta_m``, by default along the
+  *estimated* path, keeps every standing-still start, and reports metres, not a ratio.)
 """
 from __future__ import annotations
 
@@ -107,6 +110,9 @@ def path_length(T_world_gt: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(steps)])
 
 
+STILL_M = 1e-3  # a ground-truth step shorter than this is standing still (RPE start poses)
+
+
 def rpe(T_world_est: np.ndarray, T_world_gt: np.ndarray, delta_m: float = 1.0) -> RPEResult:
     """Relative pose error per travelled metre over segments of at least ``delta_m`` (see module doc)."""
     _check_pair(T_world_est, T_world_gt)
@@ -116,7 +122,10 @@ def rpe(T_world_est: np.ndarray, T_world_gt: np.ndarray, delta_m: float = 1.0) -
     gt = np.asarray(T_world_gt, dtype=float)
     dist = path_length(gt)
     j_of_i = np.searchsorted(dist, dist + delta_m, side="left")
-    valid = np.nonzero(j_of_i < len(dist))[0]
+    # one start per standing-still stretch: otherwise the pose where the robot sets off is the end of
+    # every pair that starts while it waits, and its error alone would weigh as much as the whole drive
+    moved = np.concatenate([[True], np.diff(dist) > STILL_M])
+    valid = np.nonzero((j_of_i < len(dist)) & moved)[0]
     if len(valid) == 0:
         return RPEResult(float("nan"), float("nan"), 0, float(delta_m))
     trans, rot = [], []

@@ -75,6 +75,17 @@ def test_rpe_rotation_drift_of_one_degree_per_metre():
     assert r.rot_deg_per_m == pytest.approx(1.0, rel=1e-6)
 
 
+def test_rpe_counts_a_standing_start_once():
+    x = np.concatenate([np.zeros(50), np.arange(1, 21) * 0.1])  # 50 poses standing, then 2 m
+    gt = _poses(np.c_[x, np.zeros_like(x), np.zeros_like(x)])
+    est = gt.copy()
+    est[60:, 0, 3] += 0.01  # a 1 cm jump in the estimate between 1.0 and 1.1 m
+    r = metrics.rpe(est, gt, delta_m=1.0)
+    assert r.pairs == 11  # starts: the standing pose (once), then the poses at 0.1 .. 1.0 m
+    # (standing -> 1.0 m) misses the jump; (0.1 -> 1.1 m) .. (1.0 -> 2.0 m) each see 1 cm over 1 m
+    assert r.trans_pct == pytest.approx(100 * 10 * 0.01 / 11)
+
+
 def test_rpe_is_nan_when_the_path_is_shorter_than_delta():
     gt = _poses([[0, 0, 0], [0.3, 0, 0]])
     r = metrics.rpe(gt, gt, delta_m=1.0)
