@@ -474,6 +474,7 @@ class LoopCloser:
         """An odometry-registered scan: its pose stamp, odometry ``T_map_base`` and points in ``base_link``.
         Returns the first loop closure accepted at this scan, if any."""
         T_map_base = np.asarray(T_map_base, dtype=float)
+        points_base = np.zeros((0, 3)) if points_base is None else points_base
         if self._last_T is not None:
             self._path_m += float(np.linalg.norm(T_map_base[:3, 3] - self._last_T[:3, 3]))
         self._last_T = T_map_base
