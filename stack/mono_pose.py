@@ -68,7 +68,7 @@ class MonoConfig:
     min_iterations: int = 20
     min_inliers: int = 15
     keyframe_every: int = 10  # frames; a key frame is also made earlier when overlap or motion demand it
-    keyframe_min_flow_px: float = 3.0  # no key frame while the image has not moved (standing still)
+    keyframe_min_flow_frac: float = 0.005  # of max(width, height): no key frame while the image has not moved
     keyframe_max_flow_frac: float = 0.04  # of max(width, height): make a key frame beyond this median motion
     keyframe_min_overlap: float = 0.45  # make a key frame when fewer of the key frame's features match
     min_parallax_deg: float = 1.0  # triangulated points need this much viewing-angle difference
@@ -324,6 +324,7 @@ class PoseEstimate:
     t: np.ndarray
     inliers: np.ndarray  # bool over the 3D-2D correspondences given
     iterations: int
+    ransac_inliers: int = 0  # support of the RANSAC hypothesis before the LM refinement
 
 
 def orpe(K: np.ndarray, X_kf: np.ndarray, uv_kf: np.ndarray, uv_cur: np.ndarray, rng: np.random.Generator,
@@ -374,7 +375,8 @@ def _finish(K, best, X, uv, iterations, cfg) -> PoseEstimate | None:
         return None
     R, t = best
     inl = reprojection_errors(K, R, t, X, uv) < cfg.inlier_px
-    if inl.sum() < cfg.min_inliers:
+    n_ransac = int(inl.sum())
+    if n_ransac < cfg.min_inliers:
         return None
     for _ in range(2):
         R, t = refine_pose_lm(K, R, t, X[inl], uv[inl])
@@ -384,7 +386,7 @@ def _finish(K, best, X, uv, iterations, cfg) -> PoseEstimate | None:
         if np.array_equal(new, inl):
             break
         inl = new
-    return PoseEstimate(R, t, inl, iterations)
+    return PoseEstimate(R, t, inl, iterations, n_ransac)
 
 
 def sampson_px(E: np.ndarray, x1h: np.ndarray, x2h: np.ndarray, f: float) -> np.ndarray:
@@ -675,7 +677,7 @@ class MonoVO:
         self._since_kf += 1
         # key-frame decision: enough image motion, or the overlap with the key frame running out
         flow = float(np.median(np.linalg.norm(feats.uv[ic] - kf.feats.uv[ik], axis=1)))
-        make_kf = flow >= cfg.keyframe_min_flow_px and (
+        make_kf = flow >= cfg.keyframe_min_flow_frac * max(self.image_size) and (
             self._since_kf >= cfg.keyframe_every or ratio < cfg.keyframe_min_overlap
             or flow > cfg.keyframe_max_flow_frac * max(self.image_size))
         if make_kf:

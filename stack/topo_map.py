@@ -258,7 +258,7 @@ class TopoMap:
 @dataclass
 class MapperConfig:
     method: str = "orpe"
-    init_min_flow_px: float = 20.0  # median image motion before the two initial key frames are tried
+    init_min_flow_frac: float = 0.03  # median image motion (of max(width, height)) before initialising
     init_min_baseline_m: float = 0.1
     init_max_frames: int = 40  # give up on an initial key frame after this many frames (start again)
     min_attribute_height_px: float = 20.0  # the seed drops small boxes (objects far from the node); 320x240 px
@@ -337,7 +337,7 @@ class TopoMapper:
             self._cand = (index, stamp, feats, rgb, odom)
             return
         flow = float(np.median(np.linalg.norm(feats.uv[i1] - cf.uv[i0], axis=1)))
-        if flow < cfg.init_min_flow_px:
+        if flow < cfg.init_min_flow_frac * max(self.size):
             return
         if odom is None or co is None:
             raise ValueError("TopoMapper.add: the given baseline needs wheel odometry (T_odom_base) with the images")

@@ -200,12 +200,14 @@ def wheel_odometry_at(scenario, seed: int, stamps: np.ndarray, light: float | No
     return out
 
 
-def camera_stream(scenario=None, seed: int | None = None, light: float | None = None, size=DEFAULT_SIZE,
+def camera_stream(scenario=None, seed: int | None = None, light: float | None = None, size=None,
                   duration: float | None = None, cache: bool = True) -> CameraStream:
-    """The scenario's camera stream, from the cache when it is there (rendered and cached otherwise)."""
+    """The scenario's camera stream, from the cache when it is there (rendered and cached otherwise).
+    ``size``: (width, height), default the scenario's camera."""
     from sim.scenario import load_scenario
 
     sc = load_scenario(scenario)
+    size = tuple(size) if size is not None else (sc.sensors.camera_width, sc.sensors.camera_height)
     seed = sc.seed if seed is None else int(seed)
     light = sc.light if light is None else float(light)
     path = cache_root() / f"{sc.name}_s{seed}_{_key(sc.model_dump_json(), seed, light, size, duration)}"

@@ -1,0 +1,80 @@
+"""The semantic topological map: graph, planning, target node, save/load, scoring against truth."""
+import numpy as np
+import pytest
+
+from stack.messages import ObjectTruth
+from stack.topo_map import Node, ObjectAttribute, TopoMap, score_map
+from stack.transforms import make_T
+
+K = np.array([[610.0, 0, 319.5], [0, 610.0, 239.5], [0, 0, 1]])
+T_BASE_CAM = make_T(np.array([[0, 0, 1.0], [-1, 0, 0], [0, -1, 0]]), [0.2, 0, 0.3])
+
+
+def small_map():
+    m = TopoMap(K, 640, 480, T_BASE_CAM, {"scenario": "test"})
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        T = np.eye(4)
+        T[2, 3] = 0.5 * i  # the camera moves forward (optical z)
+        pts = rng.normal(size=(30, 3))
+        pts[::3] = np.nan
+        n = Node(i, 10 * i, 1.0 * i, T, 0, [], rng.uniform(0, 600, (30, 2)),
+                 rng.normal(size=(30, 128)).astype(np.float32), pts,
+                 rng.normal(size=(40, 128)).astype(np.float32) if i != 2 else None,
+                 np.arange(5, dtype=np.int64), np.full(5, 0.2))
+        m.nodes.append(n)
+        if i:
+            m.add_edge(i - 1, i, "visual" if i != 3 else "odometry")
+    m.nodes[1].attributes.append(ObjectAttribute("Mustard", 0.4, [10, 10, 30, 60], 0.05))
+    m.nodes[3].attributes.append(ObjectAttribute("Mustard", 0.9, [10, 10, 50, 110], 0.03))
+    m.nodes[4].attributes.append(ObjectAttribute("Yogurt", 0.2, [100, 100, 120, 125], None))
+    return m
+
+
+def test_planning_and_the_node_holding_an_object():
+    m = small_map()
+    assert m.shortest_path(0, 4) == [0, 1, 2, 3, 4]
+    assert m.shortest_path(4, 1) == [4, 3, 2, 1]
+    m.add_edge(0, 4)  # a shortcut (2 m) is cheaper than four hops of 0.5 m + 5 cm each
+    assert m.shortest_path(0, 4) == [0, 4]
+    assert m.target_node("Mustard") == 3  # the largest box
+    assert m.target_node("Cookies") is None
+    assert [n for n, _ in m.nodes_with("Mustard", min_height_px=60)] == [3]
+    assert m.edges[0].length_m == pytest.approx(0.5)
+
+
+def test_save_and_load_round_trip(tmp_path):
+    m = small_map()
+    m.save(tmp_path)
+    m2 = TopoMap.load(tmp_path)
+    assert len(m2) == 5 and len(m2.edges) == 4
+    assert [e.kind for e in m2.edges] == [e.kind for e in m.edges]
+    for a, b in zip(m.nodes, m2.nodes):
+        np.testing.assert_allclose(a.T_map_camera, b.T_map_camera)
+        np.testing.assert_allclose(a.uv, b.uv, atol=1e-3)
+        np.testing.assert_allclose(a.desc, b.desc, atol=2e-3)
+        np.testing.assert_array_equal(np.isnan(a.points_map), np.isnan(b.points_map))
+        assert (a.place_desc is None) == (b.place_desc is None)
+        assert [x.cls for x in a.attributes] == [x.cls for x in b.attributes]
+    assert m2.target_node("Mustard") == 3
+    assert m2.semantic_matrix()[3]["objects"] == ["Mustard"]
+    (tmp_path / "topo_map.npz").unlink()
+    with pytest.raises(ValueError, match="topo_map.npz"):
+        TopoMap.load(tmp_path)
+
+
+def test_scoring_against_ground_truth():
+    m = small_map()
+    objects = [ObjectTruth("Mustard", "Mustard", make_T(None, [1.0, 0.2, 1.4]), np.ones(3) * 0.1),
+               ObjectTruth("Yogurt", "Yogurt", make_T(None, [0.0, 0.0, 9.0]), np.ones(3) * 0.1)]
+    truth = {n.id: n.T_map_camera for n in m.nodes}
+    visible = {0: set(), 1: {"Mustard"}, 2: set(), 3: {"Mustard"}, 4: set()}  # Yogurt is in no node's view
+    res = score_map(m, objects, truth, visible, T_world_map=np.eye(4))
+    rows = {r["object"]: r for r in res["objects"]}
+    assert rows["Mustard"]["found"] and rows["Mustard"]["correct_nodes"] == 2
+    assert rows["Mustard"]["target_node"] == 3
+    assert rows["Mustard"]["target_node_distance_m"] == pytest.approx(np.linalg.norm([1.0, 0.2, 1.4 - 1.5]))
+    assert not rows["Yogurt"]["found"]
+    assert res["summary"]["false_attributions"] == 1  # the Yogurt attribute on node 4
+    assert res["summary"]["found"] == 1
+    assert res["summary"]["node_position_rmse_m"] == pytest.approx(0.0)
