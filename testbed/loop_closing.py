@@ -134,6 +134,19 @@ class LoopClosingRun:
 # LiDAR odometry + loop closure on a scenario, without DOPE: the trajectory figures of issue 9
 
 
+def key_frame_scenario(scenario, config: LoopClosureConfig | None = None):
+    """(scenario, config) for a run that needs the camera only for key frames: the camera runs at its
+    rate / ``keyframe_every`` and every image it gives is a key frame (the same images as one in ten
+    at the full rate, a tenth of the rendering)."""
+    from sim.scenario import load_scenario
+
+    cfg = (config or LoopClosureConfig()).model_copy()
+    sc = scenario.model_copy(deep=True) if hasattr(scenario, "sensors") else load_scenario(scenario)
+    sc.sensors.camera_rate = sc.sensors.camera_rate / cfg.keyframe_every
+    cfg.keyframe_every = 1
+    return sc, cfg
+
+
 def run_loop_closure(scenario: str = "office_loop", out_dir: str = "out/loop_closure", seed: int | None = None,
                      duration: float | None = None, vocabulary: str | None = None,
                      config: LoopClosureConfig | None = None) -> dict:
@@ -143,7 +156,6 @@ def run_loop_closure(scenario: str = "office_loop", out_dir: str = "out/loop_clo
     Only the key frames are rendered: the camera runs at its rate / ``keyframe_every`` and every
     image it gives is a key frame (the same images as one in ten at the full rate)."""
     from sim.episode import Episode
-    from sim.scenario import load_scenario
     from stack.lidar_slam import LidarOdometry
     from stack.messages import LidarScan
     from stack.metrics import ate_rmse_umeyama, rpe
@@ -151,10 +163,7 @@ def run_loop_closure(scenario: str = "office_loop", out_dir: str = "out/loop_clo
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = (config or LoopClosureConfig()).model_copy()
-    sc = load_scenario(scenario)
-    sc.sensors.camera_rate = sc.sensors.camera_rate / cfg.keyframe_every
-    cfg.keyframe_every = 1
+    sc, cfg = key_frame_scenario(scenario, config)
     lc = LoopClosingRun(vocabulary, cfg)
     wall0 = last = time.perf_counter()
     t_odom = 0.0

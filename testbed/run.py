@@ -133,9 +133,11 @@ def make_detector(input_mode: str, stages: int, fpr: bool, weights=None):
 def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_mode="rgb", stages=6, fpr=True,
                 policy="robust-mean", duration=None, weights=None, detector=None, dope_every: int = 1,
                 write_outputs: bool = True, keep_detections: bool = False, bag_writer=None,
-                results_bag=None) -> dict:
+                results_bag=None, loop_closure: bool = False) -> dict:
     """``bag_writer``: an open ``testbed.bags.BagWriter`` that records the episode as it runs
-    (``testbed/record.py``); ``results_bag``: where the results bag goes (default OUT/results_bag)."""
+    (``testbed/record.py``); ``results_bag``: where the results bag goes (default OUT/results_bag).
+    ``loop_closure``: key frames and scans also go to a loop closer (``testbed/loop_closing.py``); at the
+    end the trajectory is corrected and every fused detection is fused again with it."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
@@ -151,6 +153,11 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
             recorder = EpisodeRecorder(bag_writer, ep)
         odom = LidarOdometry(ep.T_base_velodyne)
+        lc = None
+        if loop_closure:
+            from testbed.loop_closing import LoopClosingRun
+
+            lc = LoopClosingRun()
         wheel = WheelOdometryTrack()
         store = ObjectStore(dims=dims, policy=policy)
         T_base_cam = ep.T_base_camera
@@ -175,6 +182,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
                     continue
                 obs = fuse(det, odom.pose_at, T_base_cam)
                 store.add(obs)
+                if lc is not None:
+                    lc.on_fused(det)
                 if keep_detections:
                     observations.append(obs)
             pending[:] = keep
@@ -189,10 +198,14 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
                 timing["odometry"] += t1 - now
                 if pose is not None and len(odom) % 5 == 1 and odom.last_points_base is not None:
                     map_points.append(transform_points(pose, odom.last_points_base[::4]))
+                if lc is not None:
+                    lc.on_scan(odom, pose)
                 if len(odom):
                     flush(odom.trajectory()[0][-1])
                 timing["fusion"] += time.perf_counter() - t1
             elif isinstance(msg, CameraFrame):
+                if lc is not None:
+                    lc.on_image(msg)
                 if n_cam % dope_every == 0:
                     dets = detector.detect(msg)
                     t1 = time.perf_counter()
@@ -221,7 +234,13 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         wall = time.perf_counter() - wall0
         stamps, poses = odom.trajectory()
         T_world_map = ep.T_world_base_at(stamps[0])  # map = base_link at the first registered scan
+        if lc is not None:  # the closed-loop trajectory replaces the odometry's; labels are placed again
+            poses_odom, poses = poses, lc.finish(stamps, poses)
+            store = lc.refuse(ObjectStore(dims=dims, policy=policy), odom.pose_at, T_base_cam)
+            map_points = lc.map_points()
         odo = score_trajectory(stamps, poses, ep, T_world_map)
+        if lc is not None:
+            odo.update(lc.summary(stamps, poses_odom, poses, T_world_map, ep.T_world_base_at))
         odo["odometry_hz"] = odom.stats.hz if hasattr(odom.stats, "hz") else None
         ws, wp = wheel.trajectory()
         T_world_odom0 = ep.T_world_base_at(ws[0])
@@ -308,3 +327,7 @@ def print_summary(report: dict) -> None:
     fps = "-" if d["fps"] is None else f"{d['fps']:.1f}"
     print(f"detection: {d['predictions']} predictions in {d['frames']} frames, precision {prec}, recall {rec}, "
           f"{fps} frames/s; odometry ATE {100 * o['ate_rmse_m']:.1f} cm, RPE {o['rpe_trans_pct']:.2f} %")
+    if "loop_closures" in o:
+        print(f"loop closure: {o['loop_closures']} closures ({o['false_loop_closures']} false), "
+              f"{o['loop_candidates_rejected']} candidates rejected; ATE {100 * o['ate_rmse_m']:.1f} cm closed-loop, "
+              f"{100 * o['ate_rmse_odometry_only_m']:.1f} cm odometry only")

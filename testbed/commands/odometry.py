@@ -11,6 +11,8 @@ def register(sub) -> None:
     p.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scenario's)")
     p.add_argument("--config", default=None, help="YAML file overriding the odometry settings (stack.lidar_slam)")
     p.add_argument("--no-wheel", action="store_true", help="do not score wheel odometry")
+    p.add_argument("--loop-closure", action="store_true",
+                   help="close loops (vocabulary tree over camera key frames, LiDAR verification, pose graph)")
     p.set_defaults(func=run)
 
 
@@ -21,10 +23,12 @@ def run(args) -> int:
     from testbed.odometry import run_odometry
 
     config = load_config(args.config)
-    report = run_odometry(args.scenario, args.seed, args.out, args.duration, wheel=not args.no_wheel, config=config)
+    report = run_odometry(args.scenario, args.seed, args.out, args.duration, wheel=not args.no_wheel, config=config,
+                          loop_closure=args.loop_closure)
     keys = ("scenario", "seed", "scans", "odometry_hz", "path_length_m", "ate_rmse_m", "ate_rmse_umeyama_m",
             "rpe_trans_pct", "rpe_rot_deg_per_m")
-    brief = {k: report[k] for k in keys}
+    keys += ("ate_rmse_odometry_only_m", "loop_closures", "loop_candidates_rejected", "false_loop_closures")
+    brief = {k: report[k] for k in keys if k in report}
     if "wheel_odometry" in report:
         brief["wheel_odometry"] = {k: report["wheel_odometry"][k] for k in
                                    ("ate_rmse_m", "ate_rmse_umeyama_m", "rpe_trans_pct", "rpe_rot_deg_per_m")}

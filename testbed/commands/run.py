@@ -20,6 +20,8 @@ def register(sub) -> None:
     p.add_argument("--light", type=float, default=None, help="override the scenario's light level (0-1)")
     p.add_argument("--duration", type=float, default=None)
     p.add_argument("--policy", default="robust-mean", help="labelling policy: last, last-fpr, best-score, robust-mean, ...")
+    p.add_argument("--loop-closure", action="store_true",
+                   help="close loops (vocabulary tree + LiDAR verification + pose graph); labels move with them")
     add_dope_options(p)
     p.set_defaults(func=run)
 
@@ -31,7 +33,7 @@ def run(args) -> int:
     if args.policy not in POLICIES:
         raise SystemExit(f"--policy: expected one of {sorted(POLICIES)}, got {args.policy!r}")
     report = run_episode(args.scenario, args.out, args.seed, args.light, args.input_mode, args.stages, args.fpr,
-                         args.policy, args.duration, args.weights)
+                         args.policy, args.duration, args.weights, loop_closure=args.loop_closure)
     print_summary(report)
     print(f"wrote {args.out}/report.json, labels.xlsx, map.png, estimate_tum.txt, groundtruth_tum.txt")
     return 0
