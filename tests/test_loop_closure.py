@@ -1,11 +1,14 @@
 """Loop closure: LiDAR verification accepts the same place and rejects a look-alike, the pose graph
-straightens a drifted loop, and the loop closer does both online on scans of a ring corridor."""
+straightens a drifted loop, and the loop closer does both online on scans of a ring corridor (and a
+label made before a closure moves with it)."""
 import numpy as np
 import pytest
 
 from sim.lidar import BeamPattern, BoxRayCaster
 from sim.world import Box
+from stack.fusion import fuse, trajectory_lookup
 from stack.loop_closure import LoopCloser, LoopClosureConfig, _voxel_down, optimise_pose_graph, verify
+from stack.messages import Detection
 from stack.metrics import ate_rmse
 from stack.transforms import from_xyz_rpy, inv, make_T
 
@@ -160,3 +163,14 @@ def test_loop_closer_online_on_a_ring_corridor(furnished):
     before, after = ate_rmse(odo, np.array(gt)), ate_rmse(corrected, np.array(gt))
     assert before > 1.0
     assert after <= before / 3, (before, after)
+
+    # a label made on the first lap, before any closure, moves with the closures: fused again with the
+    # corrected trajectory it lands near the object, with the odometry it does not
+    k = int(min(c.query_stamp for c in lc.closures) / 0.5) - 4  # a little before the first closure
+    T_base_cam = from_xyz_rpy((0.2, 0.0, 0.3), (-np.pi / 2, 0.0, -np.pi / 2))  # optical: z forward
+    det = Detection("Mustard", stamps[k], make_T(None, (0.3, 0.1, 1.5)), np.zeros((9, 2)), np.ones(9), 1.0)
+    truth = (gt[k] @ T_base_cam @ det.T_cam_obj)[:3, 3]
+    with_odometry = fuse(det, (stamps, odo), T_base_cam).xyz
+    with_closures = fuse(det, lambda t: lc.correct(t, trajectory_lookup(stamps, odo)(t)), T_base_cam).xyz
+    assert np.linalg.norm(with_odometry - truth) > 0.5
+    assert np.linalg.norm(with_closures - truth) < np.linalg.norm(with_odometry - truth) / 3
