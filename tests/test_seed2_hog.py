@@ -1,0 +1,93 @@
+"""The second seed's detector: 31-d HOG, root-filter SVM training with hard negatives, the colour step."""
+import numpy as np
+import pytest
+
+from stack.hog_detector import (HogDetector, TrainingImage, fhog, fit_colour_model, iou, nms, train_detector,
+                                train_linear_svm)
+
+
+def test_fhog_shape_and_contrast_sensitivity():
+    img = np.zeros((64, 96, 3), np.uint8)
+    img[:, 48:] = 200  # a vertical edge, dark to bright
+    F = fhog(img, 4)
+    assert F.shape == (16, 24, 31)
+    assert np.all(F >= 0) and F.max() <= 0.2 * 4 * 0.5 + 1e-6 + 0.5
+    edge = F[8, 11:13]
+    assert edge[..., :27].sum() > 0 and F[8, 2, :27].sum() == 0  # gradient only at the edge
+    Fi = fhog(255 - img, 4)  # inverted contrast: same insensitive part, different sensitive bins
+    np.testing.assert_allclose(Fi[..., 18:27], F[..., 18:27], atol=1e-5)
+    assert not np.allclose(Fi[..., :18], F[..., :18])
+
+
+def test_iou_and_nms():
+    a = np.array([[0, 0, 10, 10], [5, 0, 15, 10], [50, 50, 60, 60]], float)
+    assert iou(a[:1], a[1:2])[0, 0] == pytest.approx(50 / 150)
+    keep = nms(a, np.array([0.9, 0.8, 0.1]), threshold=0.3)
+    assert list(keep) == [0, 2]
+
+
+def test_linear_svm_separates_two_clouds():
+    rng = np.random.default_rng(0)
+    X = np.vstack([rng.normal(1.5, 1, (100, 5)), rng.normal(-1.5, 1, (100, 5))])
+    y = np.r_[np.ones(100), -np.ones(100)]
+    w, b = train_linear_svm(X, y, C=1.0)
+    assert np.mean(np.sign(X @ w + b) == y) > 0.95
+
+
+def _scene(rng, colour, H=120, W=160, with_object=True):
+    img = rng.integers(60, 120, (H, W, 3)).astype(np.uint8)
+    for _ in range(3):  # distractor blobs
+        x, y = rng.integers(0, W - 20), rng.integers(0, H - 20)
+        img[y:y + rng.integers(5, 20), x:x + rng.integers(5, 20)] = rng.integers(0, 255, 3)
+    boxes = []
+    if with_object:
+        h = int(rng.integers(30, 50))
+        w = h // 2
+        x, y = int(rng.integers(0, W - w)), int(rng.integers(0, H - h))
+        img[y:y + h, x:x + w] = colour
+        img[y + h // 3:y + h // 3 + 3, x + 3:x + w - 3] = 20  # a dark stripe: some shape
+        img[y + 2 * h // 3:y + 2 * h // 3 + 3, x + 3:x + w - 3] = 20
+        boxes.append([x, y, x + w, y + h])
+    return img, np.array(boxes, float).reshape(-1, 4)
+
+
+@pytest.mark.slow
+def test_detector_learns_a_shape_and_the_colour_step_rejects_the_wrong_colour():
+    rng = np.random.default_rng(1)
+    orange = (245, 140, 20)
+    train = []
+    for _ in range(25):
+        img, b = _scene(rng, orange)
+        train.append(TrainingImage(img, b, ["Box"] * len(b), np.ones(len(b))))
+    det = train_detector(train, ["Box"], n_components=1, cells_area=24, mining_rounds=1, mining_images=8,
+                         negatives_per_image=6, C=0.1)
+    det.colour = fit_colour_model(train, ["Box"], quantile=1.0)
+    img, b = _scene(np.random.default_rng(7), orange)
+    found = det.detect(img, threshold=-0.5)
+    assert found and found[0].cls == "Box"
+    assert iou(found[0].box[None], b)[0, 0] > 0.4
+    # the same shape painted blue: the shape filter still fires, the colour step removes it
+    blue_img, bb = _scene(np.random.default_rng(7), (30, 60, 220))
+    shape_only = [d for d in det.detect(blue_img, threshold=-0.5, colour_step=False) if iou(d.box[None], bb)[0, 0] > 0.4]
+    assert shape_only and shape_only[0].colour_pass is False
+    with_colour = [d for d in det.detect(blue_img, threshold=-0.5) if iou(d.box[None], bb)[0, 0] > 0.4]
+    assert not with_colour
+
+
+def test_save_and_load(tmp_path):
+    rng = np.random.default_rng(2)
+    train = []
+    for _ in range(12):
+        img, b = _scene(rng, (30, 150, 30))
+        train.append(TrainingImage(img, b, ["G"] * len(b), np.ones(len(b))))
+    det = train_detector(train, ["G"], n_components=2, cells_area=24, mining_rounds=0)
+    det.colour = fit_colour_model(train, ["G"])
+    det.save(tmp_path / "hog.npz", tmp_path / "hog.json")
+    det2 = HogDetector.load(tmp_path / "hog.npz", tmp_path / "hog.json")
+    assert [c.shape for c in det2.components] == [c.shape for c in det.components]
+    img, _ = _scene(rng, (30, 150, 30))
+    a = [(d.cls, round(d.score, 4)) for d in det.detect(img, threshold=-1)]
+    assert a == [(d.cls, round(d.score, 4)) for d in det2.detect(img, threshold=-1)]
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="bad.npz"):
+        HogDetector.load(tmp_path / "bad.npz", None)
