@@ -282,7 +282,7 @@ def test_kiss_icp_own_command_reads_our_bag(live, tmp_path):
     gap = np.linalg.norm(theirs[:, :3, 3] - ours[:, :3, 3], axis=1)
     travelled = np.linalg.norm(ours[-1, :3, 3])
     assert travelled > 0.5
-    assert gap.max() < 0.03, f"KISS-ICP's command and ours differ by up to {gap.max():.3f} m"
+    assert gap.max() < 0.05, f"KISS-ICP's command and ours differ by up to {gap.max():.3f} m"
 
 
 def test_replay_of_a_truncated_bag_uses_its_complete_messages(live, replayed, tmp_path):
