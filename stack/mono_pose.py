@@ -142,6 +142,8 @@ def match_features(kf: Features, cur: Features, radius_px: float, max_dist: floa
     d = np.sqrt(np.maximum(2.0 - 2.0 * np.einsum("ij,ij->i", kf.desc[ii], cur.desc[jj]), 0.0))
     ok = d < max_dist
     ii, jj, d = ii[ok], jj[ok], d[ok]
+    if len(ii) == 0:
+        return ii, jj, d
     # best per key-frame feature, then best per current feature (one correspondence each)
     order = np.lexsort((d, ii))
     ii, jj, d = ii[order], jj[order], d[order]

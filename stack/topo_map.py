@@ -15,8 +15,10 @@ ten, none while the robot stands still). A node keeps
 
 Edges join consecutive nodes with ``T_a_b`` (camera a <- camera b). When tracking is lost (five
 failed frames) the pipeline re-initialises from the next two key frames with the baseline given by
-wheel odometry, and an ``odometry`` edge bridges the gap with the wheel odometry's relative pose
-(the seed has no such bridge: its map would end there; we say so in the map's ``segments``).
+wheel odometry (the seed has no such restart: its map would end there; the map's ``segments`` say
+where it happened). The new segment's first key frame is placed in the map by relocalising it
+against the last nodes (a ``relocalised`` edge); when that fails, by the wheel odometry's relative
+pose (an ``odometry`` edge).
 
 Files: ``DIR/topo_map.json`` (nodes, edges, attributes, poses, camera) + ``DIR/topo_map.npz``
 (per-node features, points and place descriptors; arrays only), written atomically.
@@ -263,6 +265,8 @@ class MapperConfig:
     init_max_frames: int = 40  # give up on an initial key frame after this many frames (start again)
     min_attribute_height_px: float = 20.0  # the seed drops small boxes (objects far from the node); 320x240 px
     detector_threshold: float = 0.0
+    relocalise_nodes: int = 6  # a new segment is first relocalised against this many last nodes
+    relocalise_min_inliers: int = 20
     seed: int = 0
 
 
@@ -296,6 +300,7 @@ class TopoMapper:
         self.seconds = {"features": 0.0, "pose": 0.0, "place": 0.0, "detector": 0.0}
         self.segments: list[dict] = []
         self._images: dict[int, tuple] = {}  # frame -> (rgb, odom) kept until its key frame is decided
+        self._bridge = "odometry"
 
     def add(self, index: int, stamp: float, rgb: np.ndarray, T_odom_base: np.ndarray | None = None) -> None:
         import cv2
@@ -348,19 +353,29 @@ class TopoMapper:
         vo = MonoVO(self.K, self.size, cfg.method, self.mono_cfg, cfg.seed + len(self.segments))
         if not vo.initialise(cf, feats, baseline, ci, index, cs, stamp):
             return
-        # the new segment's frame in the map: where the odometry puts its first key frame
+        # the new segment's frame in the map: its first key frame relocalised against the last nodes
+        # (their points, in RANSAC); failing that, where the wheel odometry puts it
+        self._bridge = "odometry"
         if not self.topo.nodes:
             self.T_map_seg = np.eye(4)
         else:
-            li, T_map_last, lo = self._last_ok if self._last_ok is not None else (None, self.topo.nodes[-1].T_map_camera, None)
-            if lo is not None and co is not None:
-                self.T_map_seg = T_map_last @ camera_motion_from_odometry(lo, co, self.T_base_camera)
+            fix = localise(self.topo, self._cand[3], None, cfg=self.mono_cfg, feats=cf, method=cfg.method,
+                           rng=np.random.default_rng(cfg.seed + index),
+                           candidates=[n.id for n in self.topo.nodes[-cfg.relocalise_nodes:]][::-1])
+            if fix is not None and fix.inliers >= cfg.relocalise_min_inliers:
+                self.T_map_seg = fix.T_map_camera
+                self._bridge = "relocalised"
             else:
-                self.T_map_seg = T_map_last
+                li, T_map_last, lo = self._last_ok if self._last_ok is not None else (None, self.topo.nodes[-1].T_map_camera, None)
+                if lo is not None and co is not None:
+                    self.T_map_seg = T_map_last @ camera_motion_from_odometry(lo, co, self.T_base_camera)
+                else:
+                    self.T_map_seg = T_map_last
         self.vo = vo
         self.segment += 1
         self._kf_nodes = 0
-        self.segments.append({"segment": self.segment, "start_frame": ci, "end_frame": None, "baseline_m": baseline})
+        self.segments.append({"segment": self.segment, "start_frame": ci, "end_frame": None, "baseline_m": baseline,
+                              "bridge": self._bridge if self.segment > 0 else None})
         self._last_ok = (index, self.T_map_seg @ inv(vo.keyframes[-1].T_cw), odom)
         log.info("segment %d initialised on frames %d-%d (baseline %.2f m)", self.segment, ci, index, baseline)
 
@@ -412,7 +427,7 @@ class TopoMapper:
         self.topo.nodes.append(node)
         self.topo._db = None
         if prev is not None:
-            self.topo.add_edge(prev.id, node.id, "odometry" if bridge else "visual")
+            self.topo.add_edge(prev.id, node.id, self._bridge if bridge else "visual")
 
 
 def node_attributes(detector, rgb: np.ndarray, threshold: float = 0.0, min_height_px: float = 20.0) -> list[ObjectAttribute]:
@@ -543,6 +558,7 @@ def score_map(topo: TopoMap, objects, node_T_world_camera: dict[int, np.ndarray]
             pose_err.append(float(np.linalg.norm(est[:3, 3] - node_T_world_camera[n.id][:3, 3])))
     summary = {"nodes": len(topo.nodes), "edges": len(topo.edges),
                "odometry_edges": sum(e.kind == "odometry" for e in topo.edges),
+               "relocalised_edges": sum(e.kind == "relocalised" for e in topo.edges),
                "objects": len(objects), "found": sum(r["found"] for r in rows),
                "attributes": n_attr, "false_attributions": false_attr,
                "node_position_rmse_m": float(np.sqrt(np.mean(np.square(pose_err)))) if pose_err else None,
