@@ -19,6 +19,9 @@ deskewed sweep one way, ICP follows, the next velocity (from that pose) is off t
 poses ring from scan to scan (measured: +-1 cm at 0.25 m/s). About the middle, a velocity error only
 stretches the sweep symmetrically and the loop is broken.
 
+Floor: on a flat floor (``floor_constraint``, the default) the floor points are left out of ICP and
+height, roll and pitch come from the floor plane instead; see ``_find_floor`` for why.
+
 Defined behaviour on bad input (each logs a warning; none raises):
 
 * non-finite points or times: those points are dropped;
@@ -64,7 +67,7 @@ class LidarOdometryConfig(BaseModel):
     min_motion_m: float = Field(0.02, ge=0, description="model deviations below this do not adapt the threshold")
     max_iterations: int = Field(500, ge=1)
     convergence: float = Field(1e-4, gt=0)
-    threads: int = Field(0, ge=0, description="0: all cores")
+    threads: int = Field(0, ge=0, description="0: all cores (KISS-ICP fixes it per process, at the first)")
     min_points: int = Field(500, ge=10, description="fewer points after cropping: skip the scan")
     gap_factor: float = Field(1.5, gt=1, description="a gap over this many sweeps counts as dropped scans")
     max_gap_s: float = Field(2.0, gt=0, description="constant velocity is extrapolated over at most this")
@@ -167,9 +170,10 @@ class OdometryStats:
 
 
 def _fit_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares plane (unit n, d) with n.x + d = 0."""
+    """Least-squares plane (unit n, d) with n.x + d = 0: the scatter matrix's weakest direction."""
     c = points.mean(axis=0)
-    n = np.linalg.svd(points - c, full_matrices=False)[2][-1]
+    q = points - c
+    n = np.linalg.eigh(q.T @ q)[1][:, 0]
     return n, -float(n @ c)
 
 
@@ -236,8 +240,9 @@ class LidarOdometry:
         sweep_motion = se3_exp(twist * sweep_s)
         frame = self._icp.preprocessor.preprocess(points, times if self.config.deskew else np.empty(0),
                                                   sweep_motion)
-        if self.config.deskew and times.size:
-            frame = frame @ (half := se3_exp(0.5 * twist * sweep_s))[:3, :3].T + half[:3, 3]  # end -> middle
+        if self.config.deskew and times.size:  # from the sweep's end to its middle (module doc)
+            half = se3_exp(0.5 * twist * sweep_s)
+            frame = frame @ half[:3, :3].T + half[:3, 3]
         if len(frame) < self.config.min_points:
             log.warning("scan at %.6f s has %d points within %.2f-%.2f m (min_points=%d): skipped",
                         t_ref, len(frame), self.config.min_range_m, self.config.max_range_m,
