@@ -330,7 +330,7 @@ class PoseEstimate:
 
 
 def orpe(K: np.ndarray, X_kf: np.ndarray, uv_kf: np.ndarray, uv_cur: np.ndarray, rng: np.random.Generator,
-         cfg: MonoConfig = MonoConfig(), batch: int = 32) -> PoseEstimate | None:
+         cfg: MonoConfig = MonoConfig(), batch: int = 32, preview: int = 24, finalists: int = 4) -> PoseEstimate | None:
     """One-point RANSAC pose (ORPE) of the current camera relative to the key frame.
 
     X_kf: (N, 3) known points in the key frame's camera; uv_kf, uv_cur: their pixels in both images."""
@@ -354,20 +354,24 @@ def orpe(K: np.ndarray, X_kf: np.ndarray, uv_kf: np.ndarray, uv_cur: np.ndarray,
         pts = idx[:, :4]
         s = scale_from_point(R[:, :, None], tdir[:, :, None], X_kf[pts][:, None], x2h[pts][:, None])  # (B, 4, 4)
         t = s[..., None] * tdir[:, :, None, :]  # (B, 4, 4, 3)
-        RX = np.matmul(X_kf[None, None], np.swapaxes(R, -1, -2))  # (B, 4, N, 3), shared by the 4 lengths
-        Xc = RX[:, :, None] + t[:, :, :, None, :]  # (B, 4, 4, N, 3)
+        # pre-emptive scoring (it keeps RANSAC's result, not its cost): all 16 B hypotheses on a
+        # random subset of the points, then the most promising few on all of them
+        sub = rng.choice(n, preview, replace=False) if n > preview else np.arange(n)
+        RX = np.matmul(X_kf[sub][None, None], np.swapaxes(R, -1, -2))  # (B, 4, m, 3), shared by the 4 lengths
+        Xc = RX[:, :, None] + t[:, :, :, None, :]  # (B, 4, 4, m, 3)
         z = Xc[..., 2]
         zs = np.where(z > 1e-6, z, 1e-6)
-        du = fx * Xc[..., 0] / zs - u0
-        dv = fy * Xc[..., 1] / zs - v0
-        counts = (((du * du + dv * dv) < thr2) & (z > 1e-6)).sum(-1)
-        flat = int(np.argmax(counts))
-        b, i, j = np.unravel_index(flat, counts.shape)
+        du = fx * Xc[..., 0] / zs - u0[sub]
+        dv = fy * Xc[..., 1] / zs - v0[sub]
+        sub_counts = (((du * du + dv * dv) < thr2) & (z > 1e-6)).sum(-1)
         done += B
-        if counts[b, i, j] > best_count:
-            best_count = int(counts[b, i, j])
-            best = (R[b, i].copy(), t[b, i, j].copy())
-            needed = _needed_iterations(best_count / n, 8, cfg.confidence, cfg.max_iterations)
+        for flat in np.argsort(sub_counts.ravel(), kind="stable")[-finalists:]:
+            b, i, j = np.unravel_index(int(flat), sub_counts.shape)
+            c = int((reprojection_errors(K, R[b, i], t[b, i, j], X_kf, uv_cur) < cfg.inlier_px).sum())
+            if c > best_count:
+                best_count = c
+                best = (R[b, i].copy(), t[b, i, j].copy())
+                needed = _needed_iterations(best_count / n, 8, cfg.confidence, cfg.max_iterations)
     return _finish(K, best, X_kf, uv_cur, done, cfg)
 
 
