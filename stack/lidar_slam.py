@@ -57,7 +57,7 @@ class LidarOdometryConfig(BaseModel):
     max_range_m: float = Field(30.0, gt=0, description="points farther than this are dropped")
     min_range_m: float = Field(0.5, ge=0, description="points nearer than this (the robot itself) are dropped")
     deskew: bool = Field(True, description="motion-compensate each sweep with its per-point times")
-    voxel_size_m: float = Field(0.25, gt=0, description="local-map voxel; the scan is sampled at 0.5x and 1.5x")
+    voxel_size_m: float = Field(0.2, gt=0, description="local-map voxel; the scan is sampled at 0.5x and 1.5x")
     max_points_per_voxel: int = Field(20, ge=1)
     floor_constraint: bool = Field(True, description="flat floor: height, roll, pitch from the floor plane")
     ground_band_m: float = Field(0.08, gt=0, description="points this near the predicted floor plane are floor")
