@@ -11,8 +11,6 @@ from stack import metrics
 from stack.lidar_slam import LidarOdometryConfig
 from stack.transforms import make_T
 
-pytestmark = pytest.mark.slow
-
 ATE_BOUND_M = 0.009  # measured 0.56 cm on this drive; 1.28 cm without deskew, ~30 cm with a 5 deg yaw error
 DURATION = 8.0
 
@@ -25,6 +23,14 @@ def short_drive():
     return sc.model_copy(update={"route": sc.route.model_copy(update={"start_pause": 0.5, "speed": 1.0})})
 
 
+def test_command_line():
+    from testbed.cli import build_parser
+    from testbed.commands.odometry import run
+
+    args = build_parser().parse_args(["odometry", "shelf_corridor", "--out", "d", "--seed", "3", "--duration", "5"])
+    assert (args.scenario, args.out, args.seed, args.duration, args.func) == ("shelf_corridor", "d", 3, 5.0, run)
+
+
 @pytest.fixture(scope="module")
 def good_run(tmp_path_factory):
     from testbed.odometry import run_odometry
@@ -33,6 +39,7 @@ def good_run(tmp_path_factory):
     return out, run_odometry(short_drive(), seed=0, out_dir=out, duration=DURATION)
 
 
+@pytest.mark.slow
 def test_odometry_meets_the_bound_and_writes_its_outputs(good_run):
     out, report = good_run
     for name in ("odometry.json", "estimate_tum.txt", "groundtruth_tum.txt", "odometry_topdown.png"):
@@ -54,6 +61,7 @@ def test_odometry_meets_the_bound_and_writes_its_outputs(good_run):
     assert wheel["messages"] > 100 and wheel["ate_rmse_m"] > report["ate_rmse_m"]
 
 
+@pytest.mark.slow
 def test_a_yawed_lidar_extrinsic_fails_the_bound(good_run, tmp_path):
     from scipy.spatial.transform import Rotation
 
@@ -69,6 +77,7 @@ def test_a_yawed_lidar_extrinsic_fails_the_bound(good_run, tmp_path):
     assert report["ate_rmse_umeyama_m"] < ATE_BOUND_M
 
 
+@pytest.mark.slow
 def test_without_deskew_the_bound_fails(tmp_path):
     from testbed.odometry import run_odometry
 
