@@ -170,6 +170,7 @@ class ColourModel:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
         with os.fdopen(fd, "w") as f:
             json.dump(self.to_json(), f, indent=1)
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
 
     @staticmethod

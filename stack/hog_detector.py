@@ -271,6 +271,7 @@ class HogDetector:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp.npz")
         os.close(fd)
         np.savez_compressed(tmp, **arrays)
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
         if colour_path is not None and self.colour is not None:
             self.colour.save(colour_path)
@@ -386,13 +387,16 @@ def _random_negative_boxes(rng, img: TrainingImage, cls: str, aspect: float, n: 
 
 
 def train_detector(images: list[TrainingImage], classes: list[str], cell: int = 4, n_components: int = 3,
-                   cells_area: float = 32.0, negatives_per_image: int = 4, mining_rounds: int = 2,
-                   mining_images: int = 300, C: float = 0.01, seed: int = 0, min_box_h: float = 12.0,
+                   cells_area: float = 32.0, negatives_per_image: int = 4, mining_rounds: int = 1,
+                   mining_images: int = 200, C: float = 0.01, seed: int = 0, min_box_h: float = 12.0,
                    min_visible: float = 0.6, log_every: float = 20.0) -> HogDetector:
-    """Train the mixture of root filters: warped positives, random negatives, hard-negative mining."""
+    """Train the mixture of root filters: warped positives, random negatives (and the other classes'
+    objects), then rounds of hard-negative mining (the detector's confident false positives on
+    training images are added to the negatives and the SVMs retrained)."""
     rng = np.random.default_rng(seed)
     det = HogDetector(cell=cell, width=images[0].rgb.shape[1])
     t_start = time.perf_counter()
+    data: list[tuple[np.ndarray, np.ndarray]] = []  # per component: positives, negatives (flattened features)
     for cls in classes:
         pos = [(i, b) for i, im in enumerate(images) for b, c, v in zip(im.boxes, im.classes, im.visible)
                if c == cls and v >= min_visible and (b[3] - b[1]) >= min_box_h]
@@ -413,25 +417,22 @@ def train_detector(images: list[TrainingImage], classes: list[str], cell: int = 
                     if f is not None:
                         Xn.append(f)
             # other classes' objects are the hardest negatives: include them all
-            for i, im in enumerate(images):
+            for im in images:
+                own = im.boxes[[cc == cls for cc in im.classes]]
                 for b, c in zip(im.boxes, im.classes):
                     if c != cls and (b[3] - b[1]) >= min_box_h:
-                        own = im.boxes[[cc == cls for cc in im.classes]]
                         if len(own) and iou(b[None], own).max() > 0.3:
                             continue
                         f = window_features(im.rgb, b, shape, cell)
                         if f is not None:
                             Xn.append(f)
-            Xp_a = np.array(Xp).reshape(len(Xp), -1)
-            Xn_a = np.array(Xn).reshape(len(Xn), -1)
-            X = np.vstack([Xp_a, Xn_a])
-            y = np.r_[np.ones(len(Xp_a)), -np.ones(len(Xn_a))]
-            w, b = train_linear_svm(X, y, C, pos_weight=len(Xn_a) / max(1, len(Xp_a)) ** 1.0 * 0.5)
+            Xp_a = np.array(Xp, dtype=np.float32).reshape(len(Xp), -1)
+            Xn_a = np.array(Xn, dtype=np.float32).reshape(len(Xn), -1)
+            data.append((Xp_a, Xn_a))
+            w, b = _fit(Xp_a, Xn_a, C)
             det.components.append(Component(cls, shape, w.reshape(shape[0], shape[1], N_FEAT).astype(np.float32), b))
             log.info("class %s component %d %s: %d positives, %d negatives (%.0f s)", cls, k, shape, len(Xp_a),
                      len(Xn_a), time.perf_counter() - t_start)
-    # hard-negative mining over all components at once: run the detector, collect confident false positives
-    hard_all: dict[int, list] = {i: [] for i in range(len(det.components))}  # accumulated over rounds
     for r in range(mining_rounds):
         hard: dict[int, list] = {i: [] for i in range(len(det.components))}
         idx = rng.permutation(len(images))[:mining_images]
@@ -447,52 +448,24 @@ def train_detector(images: list[TrainingImage], classes: list[str], cell: int = 
                 last = time.perf_counter()
                 log.info("mining round %d: %d / %d images", r + 1, n + 1, len(idx))
         for ci, c in enumerate(det.components):
-            if not hard[ci]:
+            Xh = [f for f in (window_features(images[i].rgb, b, c.shape, cell) for i, b in hard[ci]) if f is not None]
+            if not Xh:
                 continue
-            hard_all[ci] += [f for f in (window_features(images[i].rgb, b, c.shape, cell) for i, b in hard[ci])
-                             if f is not None]
-        _retrain(det, images, classes, cell, C, rng, min_box_h, min_visible, negatives_per_image, hard_all)
-        log.info("mining round %d done (%.0f s)", r + 1, time.perf_counter() - t_start)
+            Xp_a, Xn_a = data[ci]
+            Xn_a = np.vstack([Xn_a, np.array(Xh, dtype=np.float32).reshape(len(Xh), -1)])
+            data[ci] = (Xp_a, Xn_a)
+            w, b = _fit(Xp_a, Xn_a, C, np.r_[c.w.ravel(), c.bias])
+            c.w = w.reshape(c.w.shape).astype(np.float32)
+            c.bias = b
+        log.info("mining round %d done: %d hard negatives (%.0f s)", r + 1, sum(len(h) for h in hard.values()),
+                 time.perf_counter() - t_start)
     return det
 
 
-def _retrain(det: HogDetector, images, classes, cell, C, rng, min_box_h, min_visible, negatives_per_image,
-             hard: dict[int, list]) -> None:
-    """Retrain every component with its positives, the random negatives and the mined hard negatives."""
-    for cls in classes:
-        comp_idx = [i for i, c in enumerate(det.components) if c.cls == cls]
-        comps = [det.components[i] for i in comp_idx]
-        if not comps:
-            continue
-        pos = [(i, b) for i, im in enumerate(images) for b, c, v in zip(im.boxes, im.classes, im.visible)
-               if c == cls and v >= min_visible and (b[3] - b[1]) >= min_box_h]
-        pb = np.array([b for _, b in pos])
-        ar = (pb[:, 2] - pb[:, 0]) / (pb[:, 3] - pb[:, 1])
-        # positives go to the component whose filter aspect is nearest
-        aspects = np.array([c.shape[1] / c.shape[0] for c in comps])
-        assign = np.argmin(np.abs(np.log(ar[:, None]) - np.log(aspects[None])), axis=1)
-        for k, c in enumerate(comps):
-            ci = comp_idx[k]
-            Xp = [f for f in (window_features(images[i].rgb, b, c.shape, cell) for (i, b), a in zip(pos, assign) if a == k)
-                  if f is not None]
-            if len(Xp) < 5:
-                continue
-            Xn = []
-            for i in rng.permutation(len(images))[:len(images) // 2]:
-                for b in _random_negative_boxes(rng, images[i], cls, c.shape[1] / c.shape[0], negatives_per_image // 2 + 1,
-                                                min_box_h):
-                    f = window_features(images[i].rgb, b, c.shape, cell)
-                    if f is not None:
-                        Xn.append(f)
-            Xn += hard[ci]
-            Xp_a = np.array(Xp).reshape(len(Xp), -1)
-            Xn_a = np.array(Xn).reshape(len(Xn), -1)
-            X = np.vstack([Xp_a, Xn_a])
-            y = np.r_[np.ones(len(Xp_a)), -np.ones(len(Xn_a))]
-            w0 = np.r_[c.w.ravel(), c.bias]
-            w, b = train_linear_svm(X, y, C, pos_weight=len(Xn_a) / max(1, len(Xp_a)) * 0.5, w0=w0)
-            c.w = w.reshape(c.w.shape).astype(np.float32)
-            c.bias = b
+def _fit(Xp: np.ndarray, Xn: np.ndarray, C: float, w0: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    X = np.vstack([Xp, Xn])
+    y = np.r_[np.ones(len(Xp)), -np.ones(len(Xn))]
+    return train_linear_svm(X, y, C, pos_weight=0.5 * len(Xn) / max(1, len(Xp)), w0=w0)
 
 
 def fit_colour_model(images: list[TrainingImage], classes: list[str], quantile: float = 0.95,

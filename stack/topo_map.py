@@ -142,9 +142,18 @@ class TopoMap:
             path.append(prev[path[-1]])
         return path[::-1]
 
+    @property
+    def min_score(self) -> float:
+        """Detections are kept in the nodes from the detector's threshold; the map's object attributes
+        are those scoring at least this (``meta['attribute_min_score']``)."""
+        return float(self.meta.get("attribute_min_score", 0.0))
+
+    def attributes(self, node: Node) -> list[ObjectAttribute]:
+        return [a for a in node.attributes if a.score >= self.min_score]
+
     def nodes_with(self, cls: str, min_height_px: float = 0.0) -> list[tuple[int, ObjectAttribute]]:
         """(node id, attribute) of class ``cls``, largest box first."""
-        out = [(n.id, a) for n in self.nodes for a in n.attributes if a.cls == cls and a.height_px >= min_height_px]
+        out = [(n.id, a) for n in self.nodes for a in self.attributes(n) if a.cls == cls and a.height_px >= min_height_px]
         return sorted(out, key=lambda x: -x[1].height_px)
 
     def target_node(self, cls: str) -> int | None:
@@ -160,7 +169,7 @@ class TopoMap:
         for n in self.nodes:
             xyz, q = to_xyz_quat(n.T_map_camera)
             rows.append({"node": n.id, "visual_words": int(len(n.words)),
-                         "objects": sorted({a.cls for a in n.attributes}),
+                         "objects": sorted({a.cls for a in self.attributes(n)}),
                          "xyz": [round(float(v), 4) for v in xyz], "quat_xyzw": [round(float(v), 5) for v in q]})
         return rows
 
@@ -264,7 +273,8 @@ class MapperConfig:
     init_min_baseline_m: float = 0.1
     init_max_frames: int = 40  # give up on an initial key frame after this many frames (start again)
     min_attribute_height_px: float = 20.0  # the seed drops small boxes (objects far from the node); 320x240 px
-    detector_threshold: float = 0.0
+    detector_threshold: float = 0.0  # detections kept in the nodes
+    attribute_min_score: float = 0.7  # ... and those counted as the node's object attributes
     relocalise_nodes: int = 6  # a new segment is first relocalised against this many last nodes
     relocalise_min_inliers: int = 20
     seed: int = 0
@@ -289,6 +299,7 @@ class TopoMapper:
         self.detector = detector
         self.topo = TopoMap(self.K, self.size[0], self.size[1], self.T_base_camera, meta)
         self.topo.meta.setdefault("method", self.cfg.method)
+        self.topo.meta.setdefault("attribute_min_score", self.cfg.attribute_min_score)
         self.vo: MonoVO | None = None
         self.segment = -1
         self.T_map_seg = np.eye(4)
@@ -531,7 +542,7 @@ def score_map(topo: TopoMap, objects, node_T_world_camera: dict[int, np.ndarray]
     for o in objects:
         names_by_cls.setdefault(o.cls, []).append(o.name)
     for n in topo.nodes:
-        for a in n.attributes:
+        for a in topo.attributes(n):
             n_attr += 1
             if not any(name in visible.get(n.id, set()) for name in names_by_cls.get(a.cls, [])):
                 false_attr += 1

@@ -43,7 +43,7 @@ def shard_split(data_dir: Path) -> tuple[list[int], list[int]]:
 
 
 def train(data_dir: Path = DEFAULT_DATA, out: Path = DEFAULT_WEIGHTS, colour_out: Path = DEFAULT_COLOUR,
-          max_images: int | None = None, seed: int = 0, mining_rounds: int = 2, mining_images: int = 300) -> dict:
+          max_images: int | None = None, seed: int = 0, mining_rounds: int = 1, mining_images: int = 200) -> dict:
     train_shards, test_shards = shard_split(data_dir)
     if not train_shards:
         raise SystemExit(f"{data_dir}: no data shards (shard_NNNNN.npz + .json); generate them with `dopeslam datagen`")
@@ -233,8 +233,8 @@ def main(argv=None) -> int:
     t = sub.add_parser("train")
     t.add_argument("--data", type=Path, default=DEFAULT_DATA)
     t.add_argument("--max-images", type=int, default=None)
-    t.add_argument("--mining-rounds", type=int, default=2)
-    t.add_argument("--mining-images", type=int, default=300)
+    t.add_argument("--mining-rounds", type=int, default=1)
+    t.add_argument("--mining-images", type=int, default=200)
     t.add_argument("--seed", type=int, default=0)
     e = sub.add_parser("eval")
     e.add_argument("--data", type=Path, default=DEFAULT_DATA)

@@ -83,11 +83,15 @@ def scenario_map(scenario=None, light: float | None = None, cache: bool = True) 
     """The scenario's map from its own scripted drive (cached)."""
     stream = camera_stream(scenario, light=light)
     cfg = MapperConfig()
-    key = hashlib.sha1(f"{stream.scenario}/{stream.seed}/{stream.light}/{cfg}/{MonoConfig()}/{_weights_tag()}".encode()).hexdigest()[:10]
+    # the attribute score threshold is applied when the map is used, so it is not part of the key
+    key_cfg = {k: v for k, v in cfg.__dict__.items() if k != "attribute_min_score"}
+    key = hashlib.sha1(f"{stream.scenario}/{stream.seed}/{stream.light}/{key_cfg}/{MonoConfig()}/{_weights_tag()}".encode()).hexdigest()[:10]
     d = cache_root() / "maps" / f"{stream.scenario}_{key}"
     if cache and (d / "topo_map.json").exists():
         try:
-            return TopoMap.load(d), stream
+            topo = TopoMap.load(d)
+            topo.meta["attribute_min_score"] = cfg.attribute_min_score
+            return topo, stream
         except ValueError as exc:
             log.warning("rebuilding the map: %s", exc)
     log.info("building the topological map of %s", stream.scenario)
@@ -169,6 +173,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         topo, stream = scenario_map(scenario)
     tree = tree or load_tree()
     cls, obj = resolve_object(object_name, stream.objects)
+    k_obj = [o.name for o in stream.objects].index(obj.name)
     target = topo.target_node(cls) if target_node is None else target_node
     report = {"object": object_name, "class": cls, "scenario": stream.scenario, "seed": seed,
               "map": {"nodes": len(topo), "edges": len(topo.edges), "segments": topo.meta.get("segments")},
@@ -282,6 +287,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         "final_distance_m": float(np.linalg.norm(end_xy - true_node_base[target][:2, 3])),
         "distance_to_object_m": float(np.linalg.norm(end_xy - obj.T_world_obj[:2, 3])),
         "target_node_to_object_m": float(np.linalg.norm(true_node_base[target][:2, 3] - obj.T_world_obj[:2, 3])),
+        "target_node_shows_object": stream.object_in_view(topo.nodes[target].frame, k_obj, 0.3),
         "path_length_m": float(np.sum(np.linalg.norm(np.diff(trace[:, :2], axis=0), axis=1))),
         "sim_seconds": sim_seconds, "wall_seconds": time.perf_counter() - wall0,
         "localisation": {"attempts": loc_calls, "fixes": len(fix_log), "accepted": tracker.fixes,
@@ -303,8 +309,8 @@ def _plot(path, topo, stream, true_node_base, trace, target, report, obj) -> Non
     nb = np.array([true_node_base[n.id][:2, 3] for n in topo.nodes])
     ax.plot(nb[:, 0], nb[:, 1], "o", color="tab:blue", ms=4, label="nodes (true positions)")
     for n in topo.nodes:
-        if n.attributes:
-            ax.annotate(",".join(a.cls for a in n.attributes), true_node_base[n.id][:2, 3], fontsize=6,
+        if topo.attributes(n):
+            ax.annotate(",".join(a.cls for a in topo.attributes(n)), true_node_base[n.id][:2, 3], fontsize=6,
                         xytext=(3, -8), textcoords="offset points", color="tab:blue")
     ax.plot(trace[:, 0], trace[:, 1], "r-", lw=1.5, label="navigation")
     ax.plot(*true_node_base[target][:2, 3], "*", color="gold", ms=14, mec="k", label=f"target node {target}")
@@ -332,8 +338,9 @@ def _fmt(v) -> str:
 
 
 def batch(scenarios=("experiment3_columns", "shelf_corridor"), seeds=range(10), out_dir="out/seed2/navigate") -> dict:
-    """Ten seeded navigation runs per scenario, the object asked for cycling through the scenario's
-    objects (seed k asks for object k mod n). Writes ``navigate_batch.json``."""
+    """Ten seeded navigation runs per scenario, the object asked for cycling through the objects the
+    map holds (seed k asks for the k mod n-th; those without a node are listed). Writes
+    ``navigate_batch.json``."""
     from testbed.simulate import write_json
 
     out = Path(out_dir)
@@ -342,13 +349,18 @@ def batch(scenarios=("experiment3_columns", "shelf_corridor"), seeds=range(10), 
     summary = {"success_m": SUCCESS_M, "scenarios": {}}
     for name in scenarios:
         topo, stream = scenario_map(name)
+        # the objects the map holds (a class the detector never attributed has no node to drive to)
+        held = [o for o in stream.objects if topo.target_node(o.cls) is not None]
+        summary.setdefault("objects_without_node", {})[name] = [o.name for o in stream.objects if o not in held]
         rows = []
         for seed in seeds:
-            obj = stream.objects[seed % len(stream.objects)]
+            if not held:
+                break
+            obj = held[seed % len(held)]
             r = navigate(obj.name, name, out / name / f"seed{seed}", seed, topo=topo, stream=stream, tree=tree)
             rows.append({k: r.get(k) for k in ("object", "seed", "target_node", "success", "reached", "final_distance_m",
-                                               "distance_to_object_m", "target_node_to_object_m", "path_length_m",
-                                               "sim_seconds", "wall_seconds")})
+                                               "distance_to_object_m", "target_node_to_object_m",
+                                               "target_node_shows_object", "path_length_m", "sim_seconds", "wall_seconds")})
             log.info("%s seed %d -> %s: %s m", name, seed, obj.name, rows[-1]["final_distance_m"])
             summary["scenarios"][name] = {"runs": rows, "successes": sum(bool(x["success"]) for x in rows),
                                           "map": {"nodes": len(topo), "segments": topo.meta.get("segments")}}
