@@ -202,29 +202,38 @@ def run_eval(out: Path, data_dir: Path = DEFAULT_DATA, max_images: int | None = 
         plot_pr(res, out / f"pr_{name}.png", f"Precision-recall, {name} ({len(images)} images)")
         for c in CLASSES:
             res["classes"][c].pop("_curves")
-        cls = res["classes"]
-        res["mean_ap_shape"] = float(np.mean([cls[c]["ap_shape"] for c in CLASSES]))
-        res["mean_ap_colour"] = float(np.mean([cls[c]["ap_colour"] for c in CLASSES]))
-        better = [c for c in CLASSES if (cls[c]["precision_at_colour_max_recall"]["colour"] or 0)
-                  > (cls[c]["precision_at_colour_max_recall"]["shape"] or 0) + 1e-9]
-        res["colour_raises_precision_at_equal_recall"] = better
+        summarise(res)
         report["sets"][name] = res
     write_json(out / "detector.json", report)
     return report
 
 
+def summarise(res: dict) -> dict:
+    """Mean APs and, at recall 0.25 and 0.5, the classes whose precision the colour step raises."""
+    cls = res["classes"]
+    res["mean_ap_shape"] = float(np.mean([cls[c]["ap_shape"] for c in CLASSES]))
+    res["mean_ap_colour"] = float(np.mean([cls[c]["ap_colour"] for c in CLASSES]))
+    res["colour_raises_precision_at_equal_recall"] = {}
+    for r in ("0.25", "0.5"):
+        res["colour_raises_precision_at_equal_recall"][r] = [
+            c for c in CLASSES if (cls[c]["precision_at_recall"][r]["colour"] or 0)
+            > (cls[c]["precision_at_recall"][r]["shape"] or 0) + 1e-9]
+    return res
+
+
 def print_table(report: dict) -> None:
     for name, res in report["sets"].items():
         print(f"{name}: {res['images']} images, {1000 * res['seconds_per_image']:.0f} ms per image")
-        print(f"{'class':<12} {'objects':>7} {'AP shape':>9} {'AP +colour':>10} {'P@R shape':>10} {'P@R colour':>10} {'R':>5}")
+        print(f"{'class':<12} {'objects':>7} {'AP shape':>9} {'AP +colour':>10} {'P@R.25 shape':>12} {'colour':>7} "
+              f"{'P@R.5 shape':>11} {'colour':>7}")
+        fmt = lambda v: "-" if v is None else f"{100 * v:.1f}"  # noqa: E731
         for c, r in res["classes"].items():
-            q = r["precision_at_colour_max_recall"]
-            fmt = lambda v: "-" if v is None else f"{100 * v:.1f}"  # noqa: E731
+            q, h = r["precision_at_recall"]["0.25"], r["precision_at_recall"]["0.5"]
             print(f"{c:<12} {r['positives']:>7} {100 * r['ap_shape']:>9.1f} {100 * r['ap_colour']:>10.1f} "
-                  f"{fmt(q['shape']):>10} {fmt(q['colour']):>10} {q['recall']:>5.2f}")
+                  f"{fmt(q['shape']):>12} {fmt(q['colour']):>7} {fmt(h['shape']):>11} {fmt(h['colour']):>7}")
+        up = res["colour_raises_precision_at_equal_recall"]
         print(f"mean AP: shape {100 * res['mean_ap_shape']:.1f}, with colour {100 * res['mean_ap_colour']:.1f}; "
-              f"colour step raises precision at equal recall for {len(res['colour_raises_precision_at_equal_recall'])}/6: "
-              f"{', '.join(res['colour_raises_precision_at_equal_recall'])}")
+              f"the colour step raises precision at recall 0.25 for {len(up['0.25'])}/6, at recall 0.5 for {len(up['0.5'])}/6")
 
 
 def main(argv=None) -> int:
@@ -241,7 +250,15 @@ def main(argv=None) -> int:
     e.add_argument("--out", type=Path, default=Path("out/seed2/detector"))
     e.add_argument("--max-images", type=int, default=None)
     e.add_argument("--no-streams", action="store_true")
+    tb = sub.add_parser("table")
+    tb.add_argument("json", type=Path)
     args = ap.parse_args(argv)
+    if args.cmd == "table":
+        report = json.loads(args.json.read_text())
+        for res in report["sets"].values():
+            summarise(res)
+        print_table(report)
+        return 0
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     if args.cmd == "train":
         print(json.dumps(train(args.data, max_images=args.max_images, seed=args.seed, mining_rounds=args.mining_rounds,
