@@ -77,7 +77,8 @@ def main() -> None:
         ("voxel 0.25 m", default.model_copy(update={"voxel_size_m": 0.25})),
         ("voxel 0.35 m", default.model_copy(update={"voxel_size_m": 0.35})),
     ]
-    header = f"{'configuration':<24} {'wall ms':>8} {'p95 ms':>7} {'CPU ms':>7} {'scans/s':>8} {'ATE cm':>7} {'RPE %':>6}  load"
+    header = (f"{'configuration':<24} {'wall ms':>8} {'p95 ms':>7} {'CPU ms':>7} {'scans/s':>8} {'ATE cm':>7} "
+              f"{'RPE %':>6}  load")
     print(header)
     print("-" * len(header))
     for label, cfg in configs:

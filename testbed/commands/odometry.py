@@ -5,7 +5,8 @@ from __future__ import annotations
 
 def register(sub) -> None:
     p = sub.add_parser("odometry", help="LiDAR odometry on an episode, scored against ground truth")
-    p.add_argument("scenario", nargs="?", default=None, help="bundled name or TOML path (default: the default scenario)")
+    p.add_argument("scenario", nargs="?", default=None,
+                   help="bundled name or TOML path (default: the default scenario)")
     p.add_argument("--out", default="out/odometry", help="output folder (default: out/odometry)")
     p.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's)")
     p.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scenario's)")
