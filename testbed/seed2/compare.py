@@ -18,12 +18,9 @@ Writes ``DIR/compare.json`` and ``DIR/compare.md`` (the table).
 """
 from __future__ import annotations
 
-import json
 import logging
 import time
 from pathlib import Path
-
-import numpy as np
 
 from stack.topo_map import score_map
 from testbed.seed2.navigate import build_map, load_detector, load_tree, node_truth

@@ -238,8 +238,9 @@ def print_tables(report: dict) -> None:
             f = lambda v, s=1.0, d=3: "-" if v is None else f"{v * s:.{d}f}"  # noqa: E731
             print(f"  {LABELS[m]:<12} {t2['failures']:>5}/{t2['runs']:<3} {f(t2['absolute_error_m_median']):>10} "
                   f"{f(t2['mean_translation_error_m']):>10} {f(t2['mean_rotation_error_deg'], 1, 2):>10} "
-                  f"{f(ba.get('absolute_error_m')):>12} {1000 * ba['seconds_per_image']:>9.0f} "
-                  f"{wd['tracked']:>12}/{wd['images'] - INIT_GAP - 1} images")
+                  f"{f(ba.get('absolute_error_m')) + ('*' if ba['failed'] else ''):>12} {1000 * ba['seconds_per_image']:>9.0f} "
+                  f"{wd['tracked']:>12}/{wd['images'] - INIT_GAP - 1} images, {wd.get('path_m', 0):.1f} m")
+        print("  (* the run lost track: its error is at the last tracked image)")
 
 
 def main(argv=None) -> int:
@@ -247,7 +248,11 @@ def main(argv=None) -> int:
     ap.add_argument("--scenarios", default=",".join(DEFAULT_SCENARIOS))
     ap.add_argument("--runs", type=int, default=100)
     ap.add_argument("--out", type=Path, default=Path("out/seed2/pose"))
+    ap.add_argument("--table", type=Path, default=None, help="print the tables of an existing pose_eval.json")
     args = ap.parse_args(argv)
+    if args.table is not None:
+        print_tables(json.loads(args.table.read_text()))
+        return 0
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     report = run(args.scenarios.split(","), args.runs, args.out)
     print_tables(report)
