@@ -13,7 +13,8 @@ The pipeline (the seed's steps 1-7):
      matrix (our own eight-point) -> its four (R, t-direction) decompositions; the translation's
      length from each of four sampled points with known 3D (collinearity of the bearing with
      ``R X + s t``), i.e. 16 translation distances; the hypothesis with the most reprojection
-     inliers (< 2 px) wins. Adaptive stopping at 99 % confidence.
+     inliers (< 2 px) wins. Adaptive stopping at 99 % confidence. (For speed each batch of
+     hypotheses is first scored on 24 random points and only the best four on all of them.)
    - ``trpe`` (Wu's two-RANSAC method, the seed's foil): RANSAC 1 finds the best essential matrix
      from all 2D-2D matches (Sampson error), its (R, t-direction) chosen by cheirality; RANSAC 2
      then finds the translation's length from single 3D points. When the essential matrix is
