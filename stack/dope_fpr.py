@@ -36,6 +36,7 @@ from scipy.ndimage import maximum_filter
 
 from stack.depth_window import preprocess_depth, sliding_windows
 from stack.dope_net import N_AFFINITY, N_BELIEF, STRIDE, DopeNet, load_weights
+from stack import metrics
 from stack.dope_targets import to_input_px
 from stack.messages import CameraFrame, Detection
 
@@ -58,9 +59,7 @@ def default_thresholds_path(input_mode: str = "rgb") -> Path:
 
 def cuboid_points(dims) -> np.ndarray:
     """(9, 3) cuboid corners + centroid in DOPE order in the object frame (x right, y top, z front)."""
-    w, h, d = np.asarray(dims, dtype=float) / 2
-    return np.array([[w, h, d], [-w, h, d], [-w, -h, d], [w, -h, d],
-                     [w, h, -d], [-w, h, -d], [-w, -h, -d], [w, -h, -d], [0.0, 0.0, 0.0]])
+    return metrics.cuboid_points(dims, "keypoints")
 
 
 def file_sha256(path) -> str:
