@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from scipy.ndimage import maximum_filter
 
+from stack.depth_refine import refine_translation
 from stack.depth_window import preprocess_depth, sliding_windows
 from stack.dope_net import N_AFFINITY, N_BELIEF, STRIDE, DopeNet, load_weights
 from stack import metrics
@@ -328,12 +329,16 @@ class DopeDetector:
     thresholds: FprThresholds, a JSON path, or None (= the shipped file beside the weights);
     depth_windows: [(near, far), ...] metres for depth input (None = sliding 0.3-1.8 m windows of
     0.3 m overlapping 0.1 m).
+    depth_refine: slide each detection along its viewing ray to fit the frame's aligned depth
+    (:mod:`stack.depth_refine`) when the frame has depth; the PnP-only pose is kept in
+    ``extra['pnp_pose']``, the fit in ``extra['depth_fit']``.
     """
 
     def __init__(self, weights=None, input: str = "rgb", stages: int = 6, fpr: bool = True, dims: dict | None = None,
                  thresholds=None, input_size: tuple[int, int] = (320, 240), peak_threshold: float = 0.3,
                  angle_threshold: float = 0.5, min_corners: int = 4, max_reproj_px: float = 12.0,
-                 depth_windows=None, device: str | None = None, threads: int | None = None):
+                 depth_windows=None, device: str | None = None, threads: int | None = None,
+                 depth_refine: bool = True):
         if input not in ("rgb", "depth"):
             raise ValueError(f"input must be 'rgb' or 'depth', got {input!r}")
         if not dims:
@@ -355,6 +360,7 @@ class DopeDetector:
         self.angle_threshold = angle_threshold
         self.min_corners = min_corners
         self.max_reproj_px = max_reproj_px
+        self.depth_refine = bool(depth_refine)
         self.depth_windows = list(depth_windows) if depth_windows else sliding_windows(0.3, 1.8, 0.3, 0.1)
         if isinstance(thresholds, FprThresholds):
             self.thresholds = thresholds
@@ -437,6 +443,17 @@ class DopeDetector:
             out.append(d)
         return out
 
+    def _depth_refine(self, frame: CameraFrame, dets: list[Detection]) -> None:
+        if not self.depth_refine or frame.depth_m is None:
+            return
+        for det in dets:
+            fit = refine_translation(det.T_cam_obj, self.dims[det.cls], frame.info.K, frame.depth_m)
+            det.extra["depth_fit"] = {"ok": fit.ok, "shift_m": fit.shift_m, "n_pixels": fit.n_pixels,
+                                      "inlier_frac": fit.inlier_frac}
+            if fit.ok:
+                det.extra["pnp_pose"] = det.T_cam_obj
+                det.T_cam_obj = fit.T_cam_obj
+
     def detect_stages(self, frame: CameraFrame, stage_counts=None) -> dict[int, list[Detection]]:
         """Detections for every stage count (default 1..configured stages) from one forward pass."""
         counts = sorted(stage_counts or range(1, self.stages + 1))
@@ -449,6 +466,8 @@ class DopeDetector:
             for i, win in enumerate(windows):
                 dets += self._decode(b[i], a[i], frame, s, win)
             result[s] = self._dedupe(dets) if len(windows) > 1 else dets
+        for dets in result.values():
+            self._depth_refine(frame, dets)
         return result
 
     def detect(self, frame: CameraFrame) -> list[Detection]:
@@ -458,4 +477,6 @@ class DopeDetector:
         dets = []
         for i, win in enumerate(windows):
             dets += self._decode(b[i], a[i], frame, self.stages, win)
-        return self._dedupe(dets) if len(windows) > 1 else dets
+        dets = self._dedupe(dets) if len(windows) > 1 else dets
+        self._depth_refine(frame, dets)
+        return dets

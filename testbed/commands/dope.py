@@ -39,7 +39,8 @@ def _detector(args):
 
     dims = {c: s.dims for c, s in load_catalog().items()}
     return DopeDetector(weights=args.weights or None, input=args.input, stages=6, fpr=True, dims=dims,
-                        thresholds=getattr(args, "thresholds", None) or None)
+                        thresholds=getattr(args, "thresholds", None) or None,
+                        depth_refine=not args.no_depth_refine)
 
 
 def _shards(args) -> list[int]:
@@ -142,6 +143,8 @@ def register(subparsers) -> None:
         e.add_argument("--shards", default="", help="A:B shard index range (default: the held-out shards 0:2)")
         e.add_argument("--weights", default="", help="weights file (default: shipped for --input)")
         e.add_argument("--input", choices=("rgb", "depth"), default="rgb")
+        e.add_argument("--no-depth-refine", action="store_true",
+                       help="report PnP-only poses (default: each pose is fitted along its ray to the aligned depth)")
         if name == "calibrate-fpr":
             e.add_argument("--target-precision", type=float, default=0.995)
             e.add_argument("--out", required=True, help="thresholds JSON (e.g. stack/weights/fpr_thresholds_rgb.json)")
