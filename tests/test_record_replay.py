@@ -299,3 +299,22 @@ def test_replay_of_a_truncated_bag_uses_its_complete_messages(live, replayed, tm
     assert 20 <= len(s) < len(s_ref)
     np.testing.assert_allclose(s, s_ref[: len(s)], atol=1e-6)  # a prefix of the full bag's trajectory
     assert np.linalg.norm(P[:, :3, 3] - P_ref[: len(s), :3, 3], axis=1).max() < 1e-3
+
+
+def test_replay_with_loop_closure(live, replayed, tmp_path):
+    """``--loop-closure`` on a bag: key frames from the bag's colour images, the corrected trajectory
+    places the labels; on this short straight drive nothing may be closed falsely or moved far."""
+    from stack.place_recognition import VocabularyTree, describe
+
+    with BagReader(live["bag"]) as bag:
+        feats = [describe(f.rgb) for f in islice(bag.camera_frames(), 0, None, 4)]
+    tree = VocabularyTree.train([f.descriptors for f in feats if f is not None], branching=4, depth=2)
+    report = replay_bag(live["bag"], tmp_path / "lc", detector=oracle_for(live["bag"]), loop_closure=True,
+                        vocabulary=tree)
+    assert report["loop_closure"] is True
+    o, base = report["odometry"], replayed["report"]["odometry"]
+    assert o["loop_closure"]["key_frames"] > 0 and o["false_loop_closures"] == 0
+    assert o["ate_rmse_odometry_only_m"] == pytest.approx(base["ate_rmse_m"], abs=1e-6)
+    assert abs(o["ate_rmse_m"] - base["ate_rmse_m"]) < 0.02
+    assert report["labels_summary"]["labelled"] == replayed["report"]["labels_summary"]["labelled"]
+    assert (tmp_path / "lc" / "map.png").exists()

@@ -32,6 +32,9 @@ def register(sub) -> None:
     p.add_argument("--sequential", action="store_true",
                    help="run the odometry and DOPE passes one after the other (default: at the same time)")
     p.add_argument("--results-bag", default=None, help="where the results bag goes (default OUT/results_bag)")
+    p.add_argument("--loop-closure", action="store_true",
+                   help="close loops (key frames from the colour images + LiDAR) and place labels on the corrected trajectory")
+    p.add_argument("--vocabulary", default=None, help="place-recognition vocabulary .npz (default: the bundled one)")
     add_dope_options(p)
     p.set_defaults(func=replay)
 
@@ -64,7 +67,8 @@ def replay(args) -> int:
     try:
         report = replay_bag(args.bag, args.out, input_mode=args.input_mode, stages=args.stages, fpr=args.fpr,
                             weights=args.weights, policy=args.policy, topics=topics, dope_every=args.dope_every,
-                            parallel=not args.sequential, results_bag=args.results_bag)
+                            parallel=not args.sequential, results_bag=args.results_bag,
+                            loop_closure=args.loop_closure, vocabulary=args.vocabulary)
     except BagError as exc:
         raise SystemExit(f"error: {exc}") from None
     print_replay_summary(report)
