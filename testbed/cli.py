@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "testbed.commands.bags",
     "testbed.commands.policy",
     "testbed.commands.seed2",
+    "testbed.commands.loops",
 ]
 
 

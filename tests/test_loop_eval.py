@@ -35,3 +35,12 @@ def test_seqslam_follows_a_repeated_sequence():
     assert (match[:4] == -1).all()  # not enough history for a sequence yet
     np.testing.assert_array_equal(match[4:], np.arange(4, 30))
     assert (conf[4:] > 1.0).all()
+
+
+def test_loop_commands_are_dopeslam_subcommands():
+    from testbed.cli import build_parser
+
+    a = build_parser().parse_args(["loop-eval", "--duration", "5", "--out", "x"])
+    assert a.func.__name__ == "_loop_eval" and a.duration == 5.0 and a.scenario is None
+    a = build_parser().parse_args(["loop-closure", "office_loop", "--proximity", "never"])
+    assert a.func.__name__ == "_loop_closure" and a.proximity == "never"
