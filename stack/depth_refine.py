@@ -109,5 +109,5 @@ def refine_translation(T_cam_obj: np.ndarray, dims, K: np.ndarray, depth_m: np.n
         dz = float(np.median(r[inl]))
         T[:3, 3] *= (T[2, 3] + dz) / T[2, 3]  # along the ray through the object's origin
     shift = float(np.linalg.norm(T[:3, 3]) - np.linalg.norm(T0[:3, 3]))
-    ok = frac >= min_inlier_frac and abs(T[2, 3] - z0) <= max_shift_frac * z0
+    ok = bool(frac >= min_inlier_frac and abs(T[2, 3] - z0) <= max_shift_frac * z0)
     return DepthFit(T if ok else T0, ok, shift if ok else 0.0, n_valid, frac)

@@ -32,7 +32,7 @@ def _off_range(T, dz):
 def test_range_error_is_removed_and_image_position_kept(dz):
     T = _pose()
     fit = refine_translation(_off_range(T, dz), DIMS, K, _depth_image(T))
-    assert fit.ok and fit.inlier_frac > 0.9
+    assert fit.ok is True and fit.inlier_frac > 0.9
     assert np.linalg.norm(fit.T_cam_obj[:3, 3] - T[:3, 3]) < 0.005
     assert fit.shift_m == pytest.approx(-np.linalg.norm(_off_range(T, dz)[:3, 3]) + np.linalg.norm(T[:3, 3]), abs=0.005)
 
