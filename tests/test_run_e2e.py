@@ -57,3 +57,23 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys)
     for name in ("map.png", "estimate_tum.txt", "groundtruth_tum.txt", "labels.json"):
         assert (out / name).stat().st_size > 0
     assert "mean error" in capsys.readouterr().out
+
+
+def test_experiment_keeps_its_own_input_unless_given(monkeypatch):
+    """``dopeslam experiment precision`` is the paper's depth-input test: no --input means depth."""
+    import testbed.experiments.precision as precision
+    from testbed.cli import main
+
+    seen = {}
+
+    def fake_run(out_dir, runs=5, seconds=60.0, weights=None, input_mode="depth", seed=0):
+        seen["input_mode"] = input_mode
+        raise SystemExit(0)
+
+    monkeypatch.setattr(precision, "run", fake_run)
+    with pytest.raises(SystemExit):
+        main(["experiment", "precision", "--out", "unused"])
+    assert seen["input_mode"] == "depth"
+    with pytest.raises(SystemExit):
+        main(["experiment", "precision", "--out", "unused", "--input", "rgb"])
+    assert seen["input_mode"] == "rgb"

@@ -24,7 +24,7 @@ def register(sub) -> None:
     p.add_argument("--runs", type=int, default=None, help="precision: runs per configuration (paper: 5)")
     p.add_argument("--seconds", type=float, default=None, help="precision: seconds per run (paper: 60)")
     p.add_argument("--frames", type=int, default=None, help="depth-grid: frames per grid point")
-    add_dope_options(p)
+    add_dope_options(p, defaults=False)
     p.set_defaults(func=run)
 
 

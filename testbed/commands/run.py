@@ -4,10 +4,13 @@ from __future__ import annotations
 import argparse
 
 
-def add_dope_options(p: argparse.ArgumentParser) -> None:
-    """The options of every command that runs DOPE."""
-    p.add_argument("--input", dest="input_mode", choices=["rgb", "depth"], default="rgb", help="DOPE input image")
-    p.add_argument("--stages", type=int, choices=range(1, 7), default=6, metavar="1-6", help="DOPE stages to run")
+def add_dope_options(p: argparse.ArgumentParser, defaults: bool = True) -> None:
+    """The options of every command that runs DOPE. ``defaults=False``: unset options are None, so the
+    command (e.g. an experiment with the paper's own input) keeps its default."""
+    p.add_argument("--input", dest="input_mode", choices=["rgb", "depth"], default="rgb" if defaults else None,
+                   help="DOPE input image" + ("" if defaults else " (default: the experiment's own)"))
+    p.add_argument("--stages", type=int, choices=range(1, 7), default=6 if defaults else None, metavar="1-6",
+                   help="DOPE stages to run")
     p.add_argument("--fpr", action=argparse.BooleanOptionalAction, default=True, help="false-positive reduction")
     p.add_argument("--weights", default=None, help="weights file (default: the shipped ones for --input)")
 
