@@ -12,11 +12,18 @@ Pipeline (paper sections 3.1 and 3.4):
    camera optical frame. The shipped weights are trained with view-canonical labels (the face towards
    the camera is "front", :func:`stack.dope_train.canonical_order`), so the orientation is reported up to
    a half turn about the object's vertical axis; the position is not affected.
-4. FPR: the belief tensor of the class (its 9 maps of the evaluated stage, negative values clipped)
+4. Depth refinement (RGB-D frames, on by default): PnP fixes where the object is in the image far
+   better than its range, so the pose is slid along its viewing ray until the cuboid's front surface
+   meets the aligned depth image (:mod:`stack.depth_refine`). Orientation and image position are kept;
+   the PnP-only pose stays in ``extra['pnp_pose']``.
+5. FPR: the belief tensor of the class (its 9 maps of the evaluated stage, negative values clipped)
    is summed; a sharp, single prediction has a small sum, several objects or an unsure network a
    large one. A detection passes when its sum is at or below the threshold for (class, stage count).
    Thresholds are calibrated automatically (:func:`calibrate_threshold`: the largest recall whose
-   precision stays at or above a target) and can be overridden by hand.
+   precision stays at or above a target) and can be overridden by hand. Beyond the paper, on RGB-D
+   frames a detection also fails FPR when the depth image does not support its cuboid (step 4's fit
+   finds too few consistent pixels): a detection on a column or a wall rarely has the object's shape
+   at the object's range.
 """
 from __future__ import annotations
 
@@ -201,7 +208,7 @@ def belief_sum(belief_cls: np.ndarray) -> float:
 
 
 def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_positives: int | None = None,
-                        fallback: bool = False) -> dict:
+                        fallback: bool = False, fallback_recall: float = 0.6) -> dict:
     """The belief-sum threshold with the largest recall whose precision is at least ``target_precision``.
 
     ``scores``: belief sums of a calibration set's predictions; ``correct``: whether each is a true
@@ -209,7 +216,7 @@ def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_posi
     ``n_positives`` (default: all correct predictions). Cuts are only placed between distinct scores.
     Returns {threshold, precision, recall, passed, target_met}. When no cut reaches the target the
     threshold is -inf (nothing passes), or with ``fallback`` the cut of highest precision among those
-    passing at least a tenth of the correct predictions (``target_met`` False).
+    keeping at least ``fallback_recall`` of the correct predictions (``target_met`` False).
     """
     s = np.asarray(scores, dtype=float)
     c = np.asarray(correct, dtype=bool)
@@ -232,7 +239,7 @@ def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_posi
             best = {"threshold": float(0.5 * (s[i] + nxt)), "precision": float(prec[i]), "recall": float(rec),
                     "passed": int(n[i]), "target_met": True}
     if best["passed"] == 0 and fallback and n_pos > 0:
-        ok = np.nonzero(last_of_value & (tp >= max(1, 0.1 * n_pos)))[0]
+        ok = np.nonzero(last_of_value & (tp >= max(1, fallback_recall * n_pos)))[0]
         if len(ok):
             i = int(ok[np.lexsort((-tp[ok], -prec[ok]))[0]])
             nxt = s[i + 1] if i + 1 < len(s) else s[i] + 1.0
@@ -332,13 +339,16 @@ class DopeDetector:
     depth_refine: slide each detection along its viewing ray to fit the frame's aligned depth
     (:mod:`stack.depth_refine`) when the frame has depth; the PnP-only pose is kept in
     ``extra['pnp_pose']``, the fit in ``extra['depth_fit']``.
+    depth_check (with FPR on and depth_refine): a detection whose cuboid the depth image does not
+    support (too few consistent depth pixels, see :func:`stack.depth_refine.refine_translation`) fails
+    FPR (``extra['fpr_rejected_by'] = 'depth'``), whatever its belief sum.
     """
 
     def __init__(self, weights=None, input: str = "rgb", stages: int = 6, fpr: bool = True, dims: dict | None = None,
                  thresholds=None, input_size: tuple[int, int] = (320, 240), peak_threshold: float = 0.3,
                  angle_threshold: float = 0.5, min_corners: int = 4, max_reproj_px: float = 12.0,
                  depth_windows=None, device: str | None = None, threads: int | None = None,
-                 depth_refine: bool = True):
+                 depth_refine: bool = True, depth_check: bool = True):
         if input not in ("rgb", "depth"):
             raise ValueError(f"input must be 'rgb' or 'depth', got {input!r}")
         if not dims:
@@ -361,6 +371,7 @@ class DopeDetector:
         self.min_corners = min_corners
         self.max_reproj_px = max_reproj_px
         self.depth_refine = bool(depth_refine)
+        self.depth_check = bool(depth_check)
         self.depth_windows = list(depth_windows) if depth_windows else sliding_windows(0.3, 1.8, 0.3, 0.1)
         if isinstance(thresholds, FprThresholds):
             self.thresholds = thresholds
@@ -426,7 +437,7 @@ class DopeDetector:
                     continue
                 if window is not None and not (window[0] - 0.05 <= T[2, 3] <= window[1] + 0.05):
                     continue
-                passed = (not self.fpr) or self.thresholds.passes(cls, stages, bsum)
+                passed = (not self.fpr) or self.thresholds.passes(cls, stages, bsum)  # depth check: later
                 dets.append(Detection(cls=cls, stamp=frame.stamp, T_cam_obj=T, keypoints_px=uv,
                                       peak_scores=obj.scores.copy(), belief_sum=bsum, stages=stages, fpr_pass=passed,
                                       extra={"reproj_px": err, "n_keypoints": int(np.isfinite(uv[:, 0]).sum()),
@@ -453,6 +464,9 @@ class DopeDetector:
             if fit.ok:
                 det.extra["pnp_pose"] = det.T_cam_obj
                 det.T_cam_obj = fit.T_cam_obj
+            elif self.fpr and self.depth_check:
+                det.fpr_pass = False
+                det.extra["fpr_rejected_by"] = "depth"
 
     def detect_stages(self, frame: CameraFrame, stage_counts=None) -> dict[int, list[Detection]]:
         """Detections for every stage count (default 1..configured stages) from one forward pass."""

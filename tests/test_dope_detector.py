@@ -78,3 +78,14 @@ def test_missing_dims_or_bad_input_are_errors():
         DopeDetector(input="rgb")
     with pytest.raises(ValueError, match="input"):
         DopeDetector(input="thermal", dims={"E": (0.1, 0.14, 0.035)})
+
+
+@pytest.mark.slow
+def test_fpr_rejects_a_detection_the_depth_image_contradicts():
+    frame, _, dims = _render("E", 0.8)
+    det = DopeDetector(input="rgb", stages=6, fpr=True, dims=dims, thresholds=FprThresholds({}))  # sums all pass
+    assert any(d.cls == "E" and d.fpr_pass for d in det.detect(frame))
+    frame.depth_m = np.full_like(frame.depth_m, 3.0)  # a flat wall far behind: no object there
+    found = [d for d in det.detect(frame) if d.cls == "E"]
+    assert found and all(not d.fpr_pass and d.extra["fpr_rejected_by"] == "depth" for d in found)
+    assert all(d.extra["depth_fit"]["ok"] is False for d in found)
