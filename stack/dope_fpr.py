@@ -208,11 +208,12 @@ def belief_sum(belief_cls: np.ndarray) -> float:
 
 
 def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_positives: int | None = None,
-                        fallback: bool = False, fallback_recall: float = 0.6) -> dict:
+                        fallback: bool = False, fallback_recall: float = 0.6, min_passed: int = 20) -> dict:
     """The belief-sum threshold with the largest recall whose precision is at least ``target_precision``.
 
     ``scores``: belief sums of a calibration set's predictions; ``correct``: whether each is a true
-    detection. A prediction passes when its score <= threshold. Recall is passed-correct over
+    detection. A prediction passes when its score <= threshold. A cut counts as meeting the target
+    only when at least ``min_passed`` predictions pass it (a handful of lucky ones proves nothing). Recall is passed-correct over
     ``n_positives`` (default: all correct predictions). Cuts are only placed between distinct scores.
     Returns {threshold, precision, recall, passed, target_met}. When no cut reaches the target the
     threshold is -inf (nothing passes), or with ``fallback`` the cut of highest precision among those
@@ -232,7 +233,7 @@ def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_posi
     n = np.arange(1, len(s) + 1)
     prec = tp / n
     last_of_value = np.r_[s[1:] != s[:-1], True]  # cut only after the last of equal scores
-    for i in np.nonzero(last_of_value & (prec >= target_precision))[0]:
+    for i in np.nonzero(last_of_value & (prec >= target_precision) & (n >= min(min_passed, len(s))))[0]:
         rec = tp[i] / max(n_pos, 1)
         if rec > best["recall"] or (rec == best["recall"] and best["passed"] == 0):
             nxt = s[i + 1] if i + 1 < len(s) else s[i] + 1.0
