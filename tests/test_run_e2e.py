@@ -77,3 +77,14 @@ def test_experiment_keeps_its_own_input_unless_given(monkeypatch):
     with pytest.raises(SystemExit):
         main(["experiment", "precision", "--out", "unused", "--input", "rgb"])
     assert seen["input_mode"] == "rgb"
+
+
+def test_darkness_levels_option_is_validated():
+    from testbed.cli import build_parser
+
+    a = build_parser().parse_args(["experiment", "darkness", "--levels", "1,0.25,0"])
+    assert a.levels == (1.0, 0.25, 0.0)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["experiment", "darkness", "--levels", "1,2"])
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["experiment", "darkness", "--levels", "dark"])

@@ -1,6 +1,7 @@
 """``dopeslam experiment NAME --out DIR``: the paper's experiments and the darkness sweep."""
 from __future__ import annotations
 
+import argparse
 import importlib
 
 from testbed.commands.run import add_dope_options
@@ -24,8 +25,20 @@ def register(sub) -> None:
     p.add_argument("--runs", type=int, default=None, help="precision: runs per configuration (paper: 5)")
     p.add_argument("--seconds", type=float, default=None, help="precision: seconds per run (paper: 60)")
     p.add_argument("--frames", type=int, default=None, help="depth-grid: frames per grid point")
+    p.add_argument("--levels", type=_levels, default=None,
+                   help="darkness: comma-separated light levels (default 1,0.5,0.25,0.1,0)")
     add_dope_options(p, defaults=False)
     p.set_defaults(func=run)
+
+
+def _levels(text: str) -> tuple[float, ...]:
+    try:
+        levels = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers in [0, 1], got {text!r}") from None
+    if not levels or any(not 0.0 <= v <= 1.0 for v in levels):
+        raise argparse.ArgumentTypeError(f"light levels must lie in [0, 1], got {text!r}")
+    return levels
 
 
 def run(args) -> int:
@@ -33,7 +46,7 @@ def run(args) -> int:
     out = args.out or f"out/{args.name}"
     opts = {"scenario": args.scenario, "seed": args.seed, "duration": args.duration, "runs": args.runs,
             "seconds": args.seconds, "frames": args.frames, "stages": args.stages, "input_mode": args.input_mode,
-            "weights": args.weights}
+            "weights": args.weights, "levels": args.levels}
     import inspect
 
     accepted = inspect.signature(module.run).parameters
