@@ -89,3 +89,18 @@ def test_fpr_rejects_a_detection_the_depth_image_contradicts():
     found = [d for d in det.detect(frame) if d.cls == "E"]
     assert found and all(not d.fpr_pass and d.extra["fpr_rejected_by"] == "depth" for d in found)
     assert all(d.extra["depth_fit"]["ok"] is False for d in found)
+
+
+def test_torch_threads_from_the_environment(monkeypatch):
+    import torch
+
+    before = torch.get_num_threads()
+    monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "1")
+    try:
+        DopeDetector(input="rgb", dims={"E": (0.1, 0.14, 0.035)})
+        assert torch.get_num_threads() == 1
+        monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "two")
+        with pytest.raises(ValueError, match="DOPESLAM_TORCH_THREADS"):
+            DopeDetector(input="rgb", dims={"E": (0.1, 0.14, 0.035)})
+    finally:
+        torch.set_num_threads(before)
