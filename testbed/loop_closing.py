@@ -232,19 +232,18 @@ def _trajectory_png(path, ep, T_world_map, stamps, T_odom, T_lc, lc: LoopClosing
     save(fig, path)
 
 
-def main(argv=None) -> int:
-    import argparse
-
-    p = argparse.ArgumentParser(prog="python -m testbed.loop_closing",
-                                description="LiDAR odometry with and without loop closure on a scenario")
+def add_arguments(p) -> None:
+    """The options of ``python -m testbed.loop_closing`` and ``dopeslam loop-closure``."""
     p.add_argument("scenario", nargs="?", default="office_loop")
     p.add_argument("--out", default="out/loop_closure")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--duration", type=float, default=None)
     p.add_argument("--vocabulary", default=None, help="vocabulary .npz (default: built from the training scenarios)")
-    p.add_argument("--proximity", choices=["fallback", "always", "never"], default=None)
-    a = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    p.add_argument("--proximity", choices=["fallback", "always", "never"], default=None,
+                   help="LiDAR-proximity candidates (default: fallback, when retrieval has none)")
+
+
+def run_args(a) -> int:
     cfg = LoopClosureConfig(**({"proximity": a.proximity} if a.proximity else {}))
     r = run_loop_closure(a.scenario, a.out, a.seed, a.duration, a.vocabulary, cfg)
     print(f"{r['scenario']}: {r['sim_seconds']:.0f} s simulated in {r['wall_seconds']:.0f} s; "
@@ -255,6 +254,17 @@ def main(argv=None) -> int:
           f"{100 * r['ate_rmse_odometry_only_umeyama_m']:.1f} cm")
     print(f"wrote {a.out}/loop_closure.json, loop_closure.png")
     return 0
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m testbed.loop_closing",
+                                description="LiDAR odometry with and without loop closure on a scenario")
+    add_arguments(p)
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    return run_args(a)
 
 
 if __name__ == "__main__":

@@ -295,8 +295,8 @@ def print_summary(r: dict) -> None:
               f"{100 * x['recall_at_precision_100']:6.0f}% {pr}")
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m testbed.loop_eval", description=__doc__.splitlines()[0])
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``python -m testbed.loop_eval`` and ``dopeslam loop-eval``."""
     p.add_argument("scenario", nargs="?", default=DEFAULT_SCENARIO)
     p.add_argument("--out", default="out/loop_eval")
     p.add_argument("--seed", type=int, default=None)
@@ -305,12 +305,21 @@ def main(argv=None) -> int:
     p.add_argument("--branching", type=int, default=10)
     p.add_argument("--depth", type=int, default=3)
     p.add_argument("--keep-key-frames", action="store_true", help="save (and reuse) OUT/key_frames.npz")
-    a = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+
+
+def run_args(a) -> int:
     r = run_loop_eval(a.scenario, a.out, a.seed, a.duration, a.vocabulary, a.branching, a.depth, a.keep_key_frames)
     print_summary(r)
     print(f"wrote {a.out}/loop_eval.json, loop_eval.png")
     return 0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m testbed.loop_eval", description=__doc__.splitlines()[0])
+    add_arguments(p)
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    return run_args(a)
 
 
 if __name__ == "__main__":

@@ -41,6 +41,6 @@ def test_loop_commands_are_dopeslam_subcommands():
     from testbed.cli import build_parser
 
     a = build_parser().parse_args(["loop-eval", "--duration", "5", "--out", "x"])
-    assert a.func.__name__ == "_loop_eval" and a.duration == 5.0 and a.scenario is None
+    assert a.func.__name__ == "run_args" and a.func.__module__ == "testbed.loop_eval" and a.duration == 5.0
     a = build_parser().parse_args(["loop-closure", "office_loop", "--proximity", "never"])
-    assert a.func.__name__ == "_loop_closure" and a.proximity == "never"
+    assert a.func.__module__ == "testbed.loop_closing" and a.proximity == "never"
