@@ -280,11 +280,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         poses_odom = poses
         if lc is not None:
             poses = lc.finish(stamps, poses_odom)
-            odo_lookup = lookup
-
-            def lookup(t: float):
-                T = odo_lookup(t)
-                return None if T is None else lc.closer.correct(t, T)
+            lookup = lc.pose_lookup(lookup)
             odo.map_points = lc.map_points()
 
         # pass 3: fusion
