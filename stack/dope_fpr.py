@@ -213,8 +213,9 @@ def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_posi
 
     ``scores``: belief sums of a calibration set's predictions; ``correct``: whether each is a true
     detection. A prediction passes when its score <= threshold. A cut counts as meeting the target
-    only when at least ``min_passed`` predictions pass it (a handful of lucky ones proves nothing). Recall is passed-correct over
-    ``n_positives`` (default: all correct predictions). Cuts are only placed between distinct scores.
+    only when at least ``min_passed`` predictions pass it (a handful of lucky ones proves nothing).
+    Recall is passed-correct over ``n_positives`` (default: all correct predictions). Cuts are only
+    placed between distinct scores.
     Returns {threshold, precision, recall, passed, target_met}. When no cut reaches the target the
     threshold is -inf (nothing passes), or with ``fallback`` the cut of highest precision among those
     keeping at least ``fallback_recall`` of the correct predictions (``target_met`` False).
@@ -446,7 +447,7 @@ class DopeDetector:
                     continue
                 if window is not None and not (window[0] - 0.05 <= T[2, 3] <= window[1] + 0.05):
                     continue
-                passed = (not self.fpr) or self.thresholds.passes(cls, stages, bsum)  # depth check: later
+                passed = (not self.fpr) or self.thresholds.passes(cls, stages, bsum)  # + depth check later
                 dets.append(Detection(cls=cls, stamp=frame.stamp, T_cam_obj=T, keypoints_px=uv,
                                       peak_scores=obj.scores.copy(), belief_sum=bsum, stages=stages, fpr_pass=passed,
                                       extra={"reproj_px": err, "n_keypoints": int(np.isfinite(uv[:, 0]).sum()),
