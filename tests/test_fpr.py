@@ -90,3 +90,15 @@ def test_calibration_fallback_takes_the_most_precise_cut_when_the_target_is_out_
     r = calibrate_threshold(scores, correct, target_precision=0.99, fallback=True)
     assert not r["target_met"] and r["threshold"] == pytest.approx(3.5)  # 2 of 3 correct: best precision
     assert r["precision"] == pytest.approx(2 / 3) and r["recall"] == pytest.approx(2 / 3)
+
+
+def test_a_few_lucky_detections_do_not_meet_the_target():
+    rng = np.random.default_rng(0)
+    scores = np.arange(100.0)
+    correct = np.r_[np.ones(5, bool), rng.random(95) < 0.5]  # the 5 lowest happen to be right, then chance
+    r = calibrate_threshold(scores, correct, target_precision=0.995, min_passed=20)
+    assert r["passed"] == 0 and r["threshold"] == -np.inf  # no cut with >= 20 passing reaches 99.5 %
+    r = calibrate_threshold(scores, correct, target_precision=0.995, min_passed=5)
+    assert r["target_met"] and r["passed"] == 5
+    r = calibrate_threshold(scores, correct, target_precision=0.995, fallback=True, fallback_recall=0.6)
+    assert not r["target_met"] and r["recall"] >= 0.6
