@@ -257,14 +257,12 @@ def run_args(a) -> int:
 
 
 def main(argv=None) -> int:
-    import argparse
+    """``python -m testbed.loop_closing``: the same as ``dopeslam loop-closure``."""
+    import sys
 
-    p = argparse.ArgumentParser(prog="python -m testbed.loop_closing",
-                                description="LiDAR odometry with and without loop closure on a scenario")
-    add_arguments(p)
-    a = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    return run_args(a)
+    from testbed.cli import main as cli_main
+
+    return cli_main(["loop-closure", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -315,11 +315,12 @@ def run_args(a) -> int:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m testbed.loop_eval", description=__doc__.splitlines()[0])
-    add_arguments(p)
-    a = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    return run_args(a)
+    """``python -m testbed.loop_eval``: the same as ``dopeslam loop-eval``."""
+    import sys
+
+    from testbed.cli import main as cli_main
+
+    return cli_main(["loop-eval", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -113,3 +113,14 @@ def test_triangulation_drops_points_behind_or_without_parallax():
     assert np.abs(Xt[ok] - X[ok]).max() < 1e-6
     Xz, okz = triangulate(K, np.eye(4), np.eye(4), uv1, uv1)
     assert not okz.any()
+
+
+def test_pose_figures_are_written(tmp_path):
+    from testbed.seed2.pose_eval import plot_scenario
+
+    t = np.linspace(0, 2, 20)
+    xyz = np.stack([t, 0.1 * t, 0.3 + 0 * t], axis=1)
+    curve = {"path_m": t, "rot_deg": 0.5 * t, "trans_m": 0.05 * t, "gt_xyz": xyz, "est_xyz": xyz + 0.02}
+    plot_scenario({"scenario": "s", "methods": {"orpe": {"_curve": curve}, "trpe": {}}}, tmp_path)
+    for f in ("fig15_rotation_s.png", "fig16_translation_s.png", "fig17_trajectory_s.png"):
+        assert (tmp_path / f).stat().st_size > 1000

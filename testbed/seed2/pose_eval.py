@@ -175,22 +175,16 @@ def plot_scenario(res: dict, out: Path) -> None:
 
     name = res["scenario"]
     curves = {m: r["_curve"] for m, r in res["methods"].items() if "_curve" in r}
-    fig, ax = plt.subplots(figsize=(7, 3.6))
-    for m, e in curves.items():
-        ax.plot(e["path_m"], e["rot_deg"], "-", color=COLOURS[m], label=LABELS[m])
-    ax.set_xlabel("path length (m)")
-    ax.set_ylabel("rotation error (deg)")
-    ax.set_title(f"{name}: rotation error along the path (with local BA)", fontsize=9)
-    ax.legend(fontsize=8)
-    save(fig, out / f"fig15_rotation_{name}.png")
-    fig, ax = plt.subplots(figsize=(7, 3.6))
-    for m, e in curves.items():
-        ax.plot(e["path_m"], e["trans_m"], "-", color=COLOURS[m], label=LABELS[m])
-    ax.set_xlabel("path length (m)")
-    ax.set_ylabel("translation error (m)")
-    ax.set_title(f"{name}: translation error along the path (with local BA)", fontsize=9)
-    ax.legend(fontsize=8)
-    save(fig, out / f"fig16_translation_{name}.png")
+    for key, what, unit, fig_name in (("rot_deg", "rotation", "deg", "fig15_rotation"),
+                                      ("trans_m", "translation", "m", "fig16_translation")):
+        fig, ax = plt.subplots(figsize=(7, 3.6))
+        for m, e in curves.items():
+            ax.plot(e["path_m"], e[key], "-", color=COLOURS[m], label=LABELS[m])
+        ax.set_xlabel("path length (m)")
+        ax.set_ylabel(f"{what} error ({unit})")
+        ax.set_title(f"{name}: {what} error along the path (with local BA)", fontsize=9)
+        ax.legend(fontsize=8)
+        save(fig, out / f"{fig_name}_{name}.png")
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [2, 1]})
     first = next(iter(curves.values()), None)
     if first is not None:
