@@ -96,7 +96,8 @@ def evaluate(detector: DopeDetector, data_dir, shard_ids, near_far=(0.5, 1.5), m
                 st["correct"] += ok
                 st["dets_fpr"] += det.fpr_pass
                 st["correct_fpr"] += ok and det.fpr_pass
-                if det.extra.get("depth_fit", {}).get("ok", True):  # what the belief-sum test gets to judge
+                # what the belief-sum test gets to judge: detections the depth and colour checks let through
+                if det.extra.get("depth_fit", {}).get("ok", True) and det.extra.get("colour", {}).get("pass", True):
                     records.append((det.cls, s, det.belief_sum, ok))
             for j, t in enumerate(truths):
                 z = t["T_cam_obj"][2, 3]

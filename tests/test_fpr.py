@@ -102,3 +102,17 @@ def test_a_few_lucky_detections_do_not_meet_the_target():
     assert r["target_met"] and r["passed"] == 5
     r = calibrate_threshold(scores, correct, target_precision=0.995, fallback=True, fallback_recall=0.6)
     assert not r["target_met"] and r["recall"] >= 0.6
+
+
+def test_a_cut_that_keeps_too_few_true_detections_does_not_meet_the_target():
+    # one false detection among many true ones: reaching 99.5 % would mean cutting below it
+    scores = np.r_[np.linspace(10, 100, 80)]
+    correct = np.ones(80, bool)
+    correct[30] = False
+    strict = calibrate_threshold(scores, correct, 0.995, min_passed=20)
+    assert strict["target_met"] and strict["recall"] < 0.4  # the paper's rule alone: most true ones lost
+    r = calibrate_threshold(scores, correct, 0.995, min_passed=20, min_recall=0.6, fallback=True, fallback_recall=0.95)
+    assert not r["target_met"] and r["recall"] >= 0.95
+    th = FprThresholds.calibrate([("E", 6, float(v), bool(c)) for v, c in zip(scores, correct)], 0.995)
+    assert th.get("E", 6) >= np.quantile(scores[correct], 0.95)
+    assert th.meta["min_recall"] == 0.6 and th.meta["fallback_recall"] == 0.95

@@ -44,11 +44,13 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys)
     assert report["odometry"]["ate_rmse_m"] < 0.05
     s = report["labels_summary"]
     assert s["objects"] == 6
-    # Bounds for the shipped, under-trained DOPE (see stack/weights/MODEL_CARD.md): every object gets a
-    # label and several are right; a broken transform chain or pose lookup puts them all metres off.
-    assert s["labelled"] >= 5, report["labels"]
-    assert s["objects"] - s["false_labels"] >= 2, report["labels"]
-    assert s["mean_error_m"] < 1.0
+    # The target for the default scenario (all labelled, no false label, mean <= 10 cm) on this
+    # short drive past all six (seeds 3 and 4 measured 1.9 and 1.7 cm); a broken transform chain, pose
+    # lookup or FPR puts labels metres off or lets a wrong-class detection label an object.
+    assert s["labelled"] == 6, report["labels"]
+    assert s["false_labels"] == 0, report["labels"]
+    assert s["mean_error_m"] < 0.10
+    assert report["detection"]["precision"] > 0.9
     # the spreadsheet is the store: it loads back with the same objects
     from sim.objects import load_catalog
 

@@ -76,7 +76,8 @@ def _calibrate(args) -> int:
     det = _detector(args)
     det.fpr = False
     res = evaluate(det, args.data, _shards(args))
-    th = FprThresholds.calibrate(res["records"], args.target_precision,
+    th = FprThresholds.calibrate(res["records"], args.target_precision, min_recall=args.min_recall,
+                                 fallback_recall=args.fallback_recall,
                                  meta={"weights_sha256": file_sha256(det.weights_path), "data": args.data,
                                        "shards": _shards(args), "input": args.input})
     th.save(args.out)
@@ -147,6 +148,10 @@ def register(subparsers) -> None:
                        help="report PnP-only poses (default: each pose is fitted along its ray to the aligned depth)")
         if name == "calibrate-fpr":
             e.add_argument("--target-precision", type=float, default=0.995)
+            e.add_argument("--min-recall", type=float, default=0.6,
+                           help="a cut meets the precision target only if it keeps this share of true detections")
+            e.add_argument("--fallback-recall", type=float, default=0.95,
+                           help="where the target is out of reach, keep this share of true detections")
             e.add_argument("--out", required=True, help="thresholds JSON (e.g. stack/weights/fpr_thresholds_rgb.json)")
         else:
             e.add_argument("--thresholds", default="", help="FPR thresholds JSON (default: beside the weights)")

@@ -48,6 +48,7 @@ from stack.transforms import interpolate_trajectory, inv, transform_points
 log = logging.getLogger(__name__)
 
 CACHE_VERSION = 1
+FPR_RULE_VERSION = 2  # 1: belief sum + depth check; 2: + colour check, recalibrated fall-back
 ENV_CACHE_DIR = "DOPESLAM_CACHE"
 DEFAULT_THUMB = (160, 120)
 
@@ -450,15 +451,21 @@ def load_or_build(spec: PerceptionSpec, detector_factory: DetectorFactory | None
 # --- Detectors and their identities ------------------------------------------------------------------
 
 def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
-    """Identity of the real DOPE detector: input, and hashes of its weights and FPR thresholds files
-    (the FPR verdicts are part of the cached perception)."""
+    """Identity of the real DOPE detector: input, hashes of its weights, FPR thresholds and colour-model
+    files, and the version of the FPR rule (the FPR verdicts are part of the cached perception)."""
     path = Path(getattr(detector, "weights_path", None) or dope_weights_path(input_mode, weights))
     if not path.exists():
         raise PerceptionCacheError(f"{path}: no DOPE weights for input {input_mode!r} (train them with "
                                    "`dopeslam dope train`, or pass weights=...)")
     thresholds = path.parent / f"fpr_thresholds_{input_mode}.json"
     fpr = file_sha256(thresholds, 12) if thresholds.exists() else "none"
-    return f"dope:{input_mode}:w{file_sha256(path)}:fpr{fpr}"
+    ident = f"dope:{input_mode}:w{file_sha256(path)}:fpr{fpr}:rule{FPR_RULE_VERSION}"
+    if input_mode == "rgb":
+        from stack.dope_fpr import default_colour_model_path
+
+        colour = default_colour_model_path()
+        ident += f":colour{file_sha256(colour, 12) if colour.exists() else 'none'}"
+    return ident
 
 
 def dope_weights_path(input_mode: str, weights=None) -> Path:
