@@ -90,3 +90,22 @@ def test_darkness_levels_option_is_validated():
         build_parser().parse_args(["experiment", "darkness", "--levels", "1,2"])
     with pytest.raises(SystemExit):
         build_parser().parse_args(["experiment", "darkness", "--levels", "dark"])
+
+
+def test_darkness_sweep_takes_one_input_when_given(monkeypatch, tmp_path):
+    import testbed.experiments.darkness as darkness
+
+    seen = []
+
+    def fake_episode(scenario, out_dir, seed, light, input_mode, *a, **k):
+        seen.append((input_mode, light))
+        return {"labels_summary": {"labelled": 0, "objects": 6, "false_labels": 0, "missing": 6, "mean_error_m": None},
+                "detection": {"precision": None, "recall": None}, "scenario": "x", "seed": 0}
+
+    monkeypatch.setattr(darkness, "run_episode", fake_episode)
+    monkeypatch.setattr(darkness, "plot", lambda *a, **k: None)
+    darkness.run(tmp_path, levels=(1.0, 0.0), input_mode="rgb")
+    assert seen == [("rgb", 1.0), ("rgb", 0.0)]
+    seen.clear()
+    darkness.run(tmp_path, levels=(0.5,))
+    assert seen == [("rgb", 0.5), ("depth", 0.5)]

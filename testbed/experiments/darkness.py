@@ -15,7 +15,10 @@ LEVELS = (1.0, 0.5, 0.25, 0.1, 0.0)
 
 
 def run(out_dir, scenario=None, seed=None, levels=LEVELS, inputs=("rgb", "depth"), stages=6, duration=None,
-        policy="robust-mean") -> dict:
+        policy="robust-mean", input_mode: str | None = None) -> dict:
+    """``input_mode`` (the CLI's ``--input``): sweep that input only."""
+    if input_mode is not None:
+        inputs = (input_mode,)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
