@@ -17,6 +17,7 @@ from testbed.simulate import write_json
 
 PAPER = Path(__file__).resolve().parents[2].parent / "shared" / "reference" / "paper_results.json"
 METHODS = ("original", "fpr", "best", "worst")
+MAX_DETECTION_RANGE_M = 10.0  # the D435i's depth range (sim/data/hardware.toml depth_max)
 
 
 def paper_reference() -> dict | None:
@@ -37,10 +38,13 @@ def per_object_rows(observations, objects, T_world_map) -> dict:
         picks["original"] = None if lab is None else transform_points(T_world_map, lab.xyz[None])[0]
         lab = label_of(obs, "last-fpr")
         picks["fpr"] = None if lab is None else transform_points(T_world_map, lab.xyz[None])[0]
-        if obs:
-            errs = [np.linalg.norm(world[id(o)] - truth) for o in obs]
-            picks["best"] = world[id(obs[int(np.argmin(errs))])]
-            picks["worst"] = world[id(obs[int(np.argmax(errs))])]
+        # best and worst among detections the camera could have made: a PnP pose far beyond the D435i's
+        # depth range (a degenerate solve, hundreds of metres away) is not a detection a person would pick
+        seen = [o for o in obs if not np.isfinite(o.range_m) or o.range_m <= MAX_DETECTION_RANGE_M]
+        if seen:
+            errs = [np.linalg.norm(world[id(o)] - truth) for o in seen]
+            picks["best"] = world[id(seen[int(np.argmin(errs))])]
+            picks["worst"] = world[id(seen[int(np.argmax(errs))])]
         for m in METHODS:
             p = picks.get(m)
             if p is None:
