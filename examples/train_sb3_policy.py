@@ -66,9 +66,35 @@ def save_policy(model, venv, out: Path) -> None:
                                                             "stats": stats}))
 
 
+def slot_set_extractor():
+    """A features extractor that embeds every object slot with one shared MLP (the slot's row and the
+    robot's pose in, 32 features out), so what the policy learns about one slot (e.g. "a detection FPR
+    rejected should not move the label") holds for all of them. Built lazily: torch and SB3 are optional."""
+    import torch
+    from torch import nn
+    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+
+    class SlotSetExtractor(BaseFeaturesExtractor):
+        def __init__(self, observation_space, embed: int = 32):
+            n, f = observation_space["slots"].shape
+            p = observation_space["pose"].shape[0]
+            super().__init__(observation_space, features_dim=n * embed + p)
+            self.phi = nn.Sequential(nn.Linear(f + p, 64), nn.ReLU(), nn.Linear(64, embed), nn.ReLU())
+
+        def forward(self, obs):
+            slots, pose = obs["slots"], obs["pose"]
+            b, n, _ = slots.shape
+            x = torch.cat([slots, pose[:, None, :].expand(b, n, pose.shape[1])], dim=-1)
+            return torch.cat([self.phi(x).reshape(b, -1), pose], dim=-1)
+
+    return SlotSetExtractor
+
+
 def run(scenario=None, train_seeds=range(0, 8), eval_seeds=range(8, 10), timesteps: int = 50_000,
         duration: float | None = None, detector: str = "dope", cache=None, out="out/sb3", n_envs: int = 2,
-        seed: int = 0, verbose: int = 0, renderer: str = "auto") -> dict:
+        seed: int = 0, verbose: int = 0, renderer: str = "auto", arch: str = "slots") -> dict:
+    """``arch``: 'slots' (one MLP shared by every object slot, :func:`slot_set_extractor`) or 'mlp' (SB3's
+    default flat MLP over the whole observation)."""
     try:
         from stable_baselines3 import PPO
         from stable_baselines3.common.env_util import make_vec_env
@@ -91,8 +117,14 @@ def run(scenario=None, train_seeds=range(0, 8), eval_seeds=range(8, 10), timeste
 
     venv = make_vec_env("DopeSlamLabelling-v0", n_envs=n_envs, seed=seed, env_kwargs={**train_kw, "build": False})
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True)
+    if arch == "slots":
+        policy_kwargs = {"features_extractor_class": slot_set_extractor(), "net_arch": {"pi": [], "vf": [64]}}
+    elif arch == "mlp":
+        policy_kwargs = {"net_arch": [128, 128]}
+    else:
+        raise ValueError(f"arch: expected 'slots' or 'mlp', got {arch!r}")
     model = PPO("MultiInputPolicy", venv, n_steps=256, batch_size=256, learning_rate=3e-4, gamma=0.99,
-                ent_coef=0.01, policy_kwargs={"net_arch": [128, 128]}, seed=seed, verbose=verbose, device="cpu")
+                ent_coef=0.01, policy_kwargs=policy_kwargs, seed=seed, verbose=verbose, device="cpu")
     t0 = time.perf_counter()
     model.learn(total_timesteps=int(timesteps))
     train_s = time.perf_counter() - t0
@@ -113,7 +145,7 @@ def run(scenario=None, train_seeds=range(0, 8), eval_seeds=range(8, 10), timeste
         v = [scale * r[key] for r in rows[name] if r[key] is not None]
         return (float(np.mean(v)), float(np.std(v))) if v else (None, None)
 
-    report = {"timesteps": int(timesteps), "train_seconds": train_s, "train_seeds": list(train_seeds),
+    report = {"arch": arch, "timesteps": int(timesteps), "train_seconds": train_s, "train_seeds": list(train_seeds),
               "eval_seeds": list(eval_seeds), "detector": detector, "scenario": scenario, "policies": {}}
     print(f"trained PPO for {timesteps} steps in {train_s:.0f} s ({timesteps / train_s:.0f} steps/s); "
           f"evaluated on seeds {list(eval_seeds)}")
@@ -141,8 +173,11 @@ def main(argv=None) -> int:
     p.add_argument("--out", default="out/sb3")
     p.add_argument("--n-envs", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--arch", choices=["slots", "mlp"], default="slots",
+                   help="slots: one MLP shared by every object slot; mlp: a flat MLP over the whole observation")
     a = p.parse_args(argv)
-    run(a.scenario, a.train_seeds, a.eval_seeds, a.timesteps, a.duration, a.detector, a.cache, a.out, a.n_envs, a.seed)
+    run(a.scenario, a.train_seeds, a.eval_seeds, a.timesteps, a.duration, a.detector, a.cache, a.out, a.n_envs, a.seed,
+        arch=a.arch)
     return 0
 
 
