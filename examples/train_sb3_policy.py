@@ -92,7 +92,7 @@ def slot_set_extractor():
 
 def run(scenario=None, train_seeds=range(0, 8), eval_seeds=range(8, 10), timesteps: int = 50_000,
         duration: float | None = None, detector: str = "dope", cache=None, out="out/sb3", n_envs: int = 2,
-        seed: int = 0, verbose: int = 0, renderer: str = "auto", arch: str = "slots") -> dict:
+        seed: int = 0, verbose: int = 0, renderer: str = "auto", arch: str = "mlp") -> dict:
     """``arch``: 'slots' (one MLP shared by every object slot, :func:`slot_set_extractor`) or 'mlp' (SB3's
     default flat MLP over the whole observation)."""
     try:
@@ -173,7 +173,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", default="out/sb3")
     p.add_argument("--n-envs", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--arch", choices=["slots", "mlp"], default="slots",
+    p.add_argument("--arch", choices=["slots", "mlp"], default="mlp",
                    help="slots: one MLP shared by every object slot; mlp: a flat MLP over the whole observation")
     a = p.parse_args(argv)
     run(a.scenario, a.train_seeds, a.eval_seeds, a.timesteps, a.duration, a.detector, a.cache, a.out, a.n_envs, a.seed,
