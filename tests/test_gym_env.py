@@ -451,3 +451,24 @@ def test_prebuild_builds_episode_caches_in_worker_processes(tmp_path):
     for i in range(2):
         env.reset(options={"episode": i})
     assert factory.calls == 0  # both were read from the cache the workers wrote
+
+
+def test_real_detector_identity_changes_with_weights_thresholds_and_colour_model(tmp_path, monkeypatch):
+    """The FPR verdicts are cached, so every file they depend on is part of the cache key."""
+    from stack import dope_fpr
+    from testbed.envs.perception_cache import dope_detector_id
+
+    w = tmp_path / "dope_rgb.pt"
+    w.write_bytes(b"weights-a")
+    colour = tmp_path / "colour.json"
+    colour.write_text("{}")
+    monkeypatch.setattr(dope_fpr, "default_colour_model_path", lambda: colour)
+    a = dope_detector_id("rgb", w)
+    (tmp_path / "fpr_thresholds_rgb.json").write_text("{}")
+    b = dope_detector_id("rgb", w)
+    colour.write_text('{"x": 1}')
+    c = dope_detector_id("rgb", w)
+    w.write_bytes(b"weights-b")
+    d = dope_detector_id("rgb", w)
+    assert len({a, b, c, d}) == 4
+    assert "rule" in a and "colour" in a
