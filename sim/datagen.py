@@ -48,6 +48,9 @@ class DatagenConfig:
     dist_range: tuple = (0.3, 1.8)
     cam_height: tuple = (0.25, 0.45)
     classes: tuple = CLASSES
+    slim_stand_prob: float = 0.5  # an object on a stand stands on a slim one (80 % of its footprint, as the
+    # scenarios' object stands are) this often, else on a wide box; in depth the slim stand and the object
+    # merge into one column, which the network must have seen
 
 
 def _random_texture(rng: np.random.Generator, size: int = 64) -> np.ndarray:
@@ -96,9 +99,14 @@ class _World:
                 self.objects.append((ci, spawn_object(c, spec, T)))
         self.boxes = [self._box(rng.uniform(0.03, 0.35, 3)) for _ in range(14)]
         self.stands = [self._box(np.array([rng.uniform(0.12, 0.5), rng.uniform(0.12, 0.5), 1.2])) for _ in range(4)]
+        # one slim stand per class, 80 % of the object's footprint (its horizontal axes at yaw 0)
+        self.slim_stands = []
+        for spec in self.specs:
+            foot = np.abs(spec.standing_pose([0, 0, 0], 0.0)[:3, :3] @ np.asarray(spec.dims, dtype=float))
+            self.slim_stands.append(self._box(np.array([max(0.04, 0.8 * foot[0]), max(0.04, 0.8 * foot[1]), 1.2])))
         self.floor = self._box(np.array([12.0, 12.0, 0.1]))
         self.walls = [self._box(np.array([0.1, 12.0, 4.0])) for _ in range(3)]
-        self.movable = [b for _, b in self.objects] + self.boxes + self.stands + self.walls
+        self.movable = [b for _, b in self.objects] + self.boxes + self.stands + self.slim_stands + self.walls
 
     def _box(self, size: np.ndarray) -> int:
         c = self.client
@@ -168,7 +176,11 @@ class _World:
             T = spec.standing_pose([pos_h[0], pos_h[1], zb], yaw)
             self._place(body, T[:3, 3], T[:3, :3])
             on_stand = zb > 0.01 and stands
-            if on_stand:
+            if on_stand and rng.random() < cfg.slim_stand_prob:
+                st = self.slim_stands[ci]  # under the object, turned with it
+                self._place(st, [pos_h[0], pos_h[1], zb - 0.6], Rotation.from_euler("z", yaw).as_matrix())
+                self._retexture(st)
+            elif on_stand:
                 st = stands.pop()
                 # stands are 1.2 m tall: top at zb
                 jitter = rng.uniform(-0.03, 0.03, 2)

@@ -66,6 +66,7 @@ class TrainConfig:
     min_visible: float = 0.15  # an object is a target when this fraction of its cuboid hull is seen
     threads: int = 0
     classes: tuple = ("OrangeJuice", "Yogurt", "Mustard", "Raisins", "Cookies", "E")
+    class_weights: dict = field(default_factory=dict)  # {class: weight} for picking a crop's focal object (default 1)
     extra: dict = field(default_factory=dict)
 
 
@@ -204,14 +205,23 @@ def augment_depth(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.clip(x, 0.0, 1.0)
 
 
-def choose_window(objects, rng: np.random.Generator, depth_range: float = 0.3) -> tuple[float, float]:
-    """A depth window of ``depth_range`` m containing a random annotated object (or a random one)."""
+def choose_window(objects, rng: np.random.Generator, depth_range: float = 0.3, focus=None) -> tuple[float, float]:
+    """A depth window of ``depth_range`` m containing ``focus`` (an annotated object), else a random
+    annotated object, 10 % of the time a random window."""
     if objects and rng.random() < 0.9:
-        z = objects[rng.integers(len(objects))][2][2]
+        z = (focus if focus is not None else objects[rng.integers(len(objects))])[2][2]
         near = z - rng.uniform(0.05, depth_range - 0.05)
     else:
         near = rng.uniform(0.25, 2.0)
     return float(near), float(near + depth_range)
+
+
+def pick_focus(objects, cfg: TrainConfig, rng: np.random.Generator) -> int:
+    """Index of the object a crop is centred on: uniform, or in proportion to ``cfg.class_weights``."""
+    if not cfg.class_weights:
+        return int(rng.integers(len(objects)))
+    w = np.array([float(cfg.class_weights.get(cfg.classes[o[0]], 1.0)) for o in objects])
+    return int(rng.choice(len(objects), p=w / w.sum()))
 
 
 def sample_batch(data: ShardData, cfg: TrainConfig, rng: np.random.Generator, indices: np.ndarray | None = None):
@@ -224,14 +234,16 @@ def sample_batch(data: ShardData, cfg: TrainConfig, rng: np.random.Generator, in
         i = int(pool[rng.integers(len(pool))])
         objs = data.objects[i]
         H, W = data.rgb[i].shape[:2]
+        focus = None
         if objs and rng.random() < 0.85:
-            c = objs[rng.integers(len(objs))][1][8] + rng.uniform(-0.35, 0.35, 2) * (cw, ch)
+            focus = objs[pick_focus(objs, cfg, rng)]
+            c = focus[1][8] + rng.uniform(-0.35, 0.35, 2) * (cw, ch)
         else:
             c = rng.uniform([0, 0], [W, H])
         x0 = int(np.clip(round(c[0] - cw / 2), 0, W - cw))
         y0 = int(np.clip(round(c[1] - ch / 2), 0, H - ch))
         if cfg.input == "depth":
-            window = cfg.depth_window if cfg.depth_window[1] > cfg.depth_window[0] else choose_window(objs, rng)
+            window = cfg.depth_window if cfg.depth_window[1] > cfg.depth_window[0] else choose_window(objs, rng, focus=focus)
             img = depth_input(data.depth[i], window)[y0:y0 + ch, x0:x0 + cw]
             img = augment_depth(img, rng)
             in_window = [o for o in objs if window[0] - 0.05 <= o[2][2] <= window[1] + 0.05]

@@ -38,3 +38,32 @@ def test_shard_annotations_match_segmentation_and_are_deterministic(tmp_path):
     (tmp_path / "b").mkdir()
     generate_shard(cfg_b, 0)
     assert json.loads((tmp_path / "b" / "shard_00000.json").read_text())["images"] == meta["images"]
+
+
+def test_slim_stands_carry_objects_as_the_scenarios_do(tmp_path):
+    """With slim_stand_prob=1 every target above the floor stands on its class's slim stand: centred
+    under it, its top at the object's bottom."""
+    import pybullet as p
+
+    from sim.camera import default_camera_info
+    from sim.datagen import _World
+
+    cfg = DatagenConfig(out_dir=tmp_path, seed=3, slim_stand_prob=1.0)
+    rng = np.random.default_rng(0)
+    world = _World(rng, tuple(cfg.classes), tmp_path)
+    try:
+        checked = 0
+        for _ in range(10):
+            _, placed = world.stage(cfg, default_camera_info())
+            for ci, body, T in placed[:1]:  # the first target always has a free stand
+                spec = world.specs[ci]
+                bottom = T[2, 3] - spec.height / 2
+                if bottom < 0.02:
+                    continue
+                pos, _ = p.getBasePositionAndOrientation(world.slim_stands[ci], physicsClientId=world.client)
+                assert np.allclose(pos[:2], T[:2, 3], atol=1e-6)
+                assert abs(pos[2] + 0.6 - bottom) < 1e-6
+                checked += 1
+        assert checked >= 3
+    finally:
+        p.disconnect(world.client)

@@ -69,3 +69,29 @@ def test_tiny_training_run_lowers_the_loss_and_resumes(tmp_path):
     assert set(evals["evals"][-1]["median_px"]) == {"FTR", "FTL", "FBL", "FBR", "RTR", "RTL", "RBL", "RBR", "C"}
     cfg.max_steps = 70
     assert train(cfg)["step"] == 70  # resumed from the checkpoint, not from scratch
+
+
+def test_class_weights_pick_the_weighted_class_more_often():
+    from stack.dope_train import choose_window, pick_focus
+
+    objs = [(0, np.zeros((9, 2)), np.array([0.0, 0.0, 0.6])), (1, np.zeros((9, 2)), np.array([0.0, 0.0, 1.5]))]
+    rng = np.random.default_rng(0)
+    plain = TrainConfig("d", "o", classes=("Yogurt", "E"))
+    weighted = TrainConfig("d", "o", classes=("Yogurt", "E"), class_weights={"Yogurt": 4.0})
+    n_plain = sum(pick_focus(objs, plain, rng) == 0 for _ in range(4000))
+    n_weighted = sum(pick_focus(objs, weighted, rng) == 0 for _ in range(4000))
+    assert 1800 < n_plain < 2200  # uniform: half
+    assert 3000 < n_weighted < 3400  # 4 : 1 -> 80 %
+    # the depth window holds the focal object whenever it is not the 10 % random window
+    hits = [choose_window(objs, rng, focus=objs[1]) for _ in range(500)]
+    inside = sum(lo <= 1.5 <= hi for lo, hi in hits)
+    assert inside >= 400
+
+
+def test_class_weight_flag_is_parsed_and_checked():
+    from testbed.commands.dope import parse_class_weights
+
+    assert parse_class_weights(["Yogurt=3", "E=0.5"]) == {"Yogurt": 3.0, "E": 0.5}
+    for bad in ("Yogurt", "Banana=2", "Yogurt=-1", "Yogurt=x"):
+        with pytest.raises(SystemExit, match="--class-weight"):
+            parse_class_weights([bad])

@@ -19,6 +19,24 @@ def _datagen(args) -> int:
     return 0
 
 
+def parse_class_weights(items) -> dict:
+    """``["Yogurt=3", ...]`` -> ``{"Yogurt": 3.0}``; a malformed item names the flag and the form expected."""
+    from stack.dope_train import TrainConfig
+
+    out = {}
+    for item in items or []:
+        cls, sep, w = item.partition("=")
+        try:
+            weight = float(w)
+        except ValueError:
+            weight = -1.0
+        if not sep or cls not in TrainConfig.__dataclass_fields__["classes"].default or weight <= 0:
+            raise SystemExit(f"--class-weight: expected CLASS=WEIGHT with CLASS one of "
+                             f"{list(TrainConfig.__dataclass_fields__['classes'].default)} and WEIGHT > 0, got {item!r}")
+        out[cls] = weight
+    return out
+
+
 def _train(args) -> int:
     from stack.dope_train import TrainConfig, train
 
@@ -27,6 +45,7 @@ def _train(args) -> int:
                       batch=args.batch, crop=(args.crop, args.crop), lr=args.lr, max_steps=args.steps,
                       max_minutes=args.minutes, checkpoint_minutes=args.checkpoint_minutes, seed=args.seed,
                       init_from=args.init_from or "", depth_window=window, threads=args.threads,
+                      class_weights=parse_class_weights(args.class_weight),
                       lr_decay_steps=tuple(int(s) for s in args.lr_decay.split(",")) if args.lr_decay else ())
     summary = train(cfg)
     print(json.dumps(summary, indent=1))
@@ -128,6 +147,9 @@ def register(subparsers) -> None:
     t.add_argument("--init-from", default="", help="weights to start from (e.g. the RGB weights for the depth net)")
     t.add_argument("--depth-window", default="", help="near,far metres (depth input; default: around a random object)")
     t.add_argument("--threads", type=int, default=0)
+    t.add_argument("--class-weight", action="append", default=[], metavar="CLASS=W",
+                   help="pick crops centred on CLASS W times as often (repeatable; e.g. Yogurt=3 for a class "
+                        "the network misses)")
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_train)
 
