@@ -50,7 +50,7 @@ from scipy.ndimage import maximum_filter
 
 from stack.colour_names import ColourModel, colour_names
 from stack.depth_refine import refine_translation
-from stack.depth_window import preprocess_depth, sliding_windows
+from stack.depth_window import preprocess_depth, sliding_windows, window_content
 from stack.dope_net import N_AFFINITY, N_BELIEF, STRIDE, DopeNet, load_weights
 from stack import metrics
 from stack.dope_targets import to_input_px
@@ -362,6 +362,11 @@ class DopeDetector:
     thresholds: FprThresholds, a JSON path, or None (= the shipped file beside the weights);
     depth_windows: [(near, far), ...] metres for depth input (None = sliding 0.3-1.8 m windows of
     0.3 m overlapping 0.1 m).
+    window_min_pixels (depth input): a window runs through the network only when at least this many
+    sampled pixels (every second row and column) inside it stand above the floor, which is fitted to
+    the frame's depth (:func:`stack.depth_window.window_content`; no floor found: every window runs).
+    A window that holds only floor (and what is beyond it) costs a network pass and finds nothing but
+    false positives. 0 runs every window.
     depth_refine: slide each detection along its viewing ray to fit the frame's aligned depth
     (:mod:`stack.depth_refine`) when the frame has depth; the PnP-only pose is kept in
     ``extra['pnp_pose']``, the fit in ``extra['depth_fit']``.
@@ -382,7 +387,8 @@ class DopeDetector:
                  angle_threshold: float = 0.5, min_corners: int = 4, max_reproj_px: float = 12.0,
                  depth_windows=None, device: str | None = None, threads: int | None = None,
                  depth_refine: bool = True, depth_check: bool = True, colour_check: bool = True,
-                 colour=None, colour_margin: float = 0.0, min_colour_brightness: float = 20.0):
+                 colour=None, colour_margin: float = 0.0, min_colour_brightness: float = 20.0,
+                 window_min_pixels: int = 40):
         if input not in ("rgb", "depth"):
             raise ValueError(f"input must be 'rgb' or 'depth', got {input!r}")
         if not dims:
@@ -413,6 +419,9 @@ class DopeDetector:
         self.depth_refine = bool(depth_refine)
         self.depth_check = bool(depth_check)
         self.depth_windows = list(depth_windows) if depth_windows else sliding_windows(0.3, 1.8, 0.3, 0.1)
+        self.window_min_pixels = int(window_min_pixels)
+        self.windows_run = 0  # depth windows run through the network (and skipped), for reports
+        self.windows_skipped = 0
         self.colour_check = bool(colour_check) and input == "rgb"
         self.colour_margin = float(colour_margin)
         self.min_colour_brightness = float(min_colour_brightness)
@@ -444,14 +453,22 @@ class DopeDetector:
             return x[None], [None]
         if frame.depth_m is None:
             raise ValueError("DopeDetector(input='depth') got a CameraFrame without depth_m")
+        windows = list(self.depth_windows)
+        if self.window_min_pixels > 0:
+            counts = window_content(frame.depth_m, np.asarray(frame.info.K, dtype=float), windows)
+            windows = [win for win, n in zip(windows, counts) if n >= self.window_min_pixels]
+        self.windows_run += len(windows)
+        self.windows_skipped += len(self.depth_windows) - len(windows)
+        if not windows:
+            return np.zeros((0, 3, h, w), np.float32), []
         d = frame.depth_m
         if d.shape[1] != w or d.shape[0] != h:
             d = cv2.resize(d, (w, h), interpolation=cv2.INTER_NEAREST)
         xs = []
-        for near, far in self.depth_windows:
+        for near, far in windows:
             img = preprocess_depth(d, near, far)
             xs.append(np.repeat(((img - MEAN) / STD)[None], 3, axis=0))
-        return np.stack(xs).astype(np.float32), list(self.depth_windows)
+        return np.stack(xs).astype(np.float32), windows
 
     @torch.no_grad()
     def _forward(self, x: np.ndarray, stages: int):
@@ -554,6 +571,8 @@ class DopeDetector:
         """Detections for every stage count (default 1..configured stages) from one forward pass."""
         counts = sorted(stage_counts or range(1, self.stages + 1))
         x, windows = self._inputs(frame)
+        if not windows:
+            return {s: [] for s in counts}
         outs = self._forward(x, max(counts))
         result = {}
         for s in counts:
@@ -570,6 +589,8 @@ class DopeDetector:
     def detect(self, frame: CameraFrame) -> list[Detection]:
         """Detections (with FPR verdicts) of the configured stage count."""
         x, windows = self._inputs(frame)
+        if not windows:
+            return []
         b, a = self._forward(x, self.stages)[-1]
         dets = []
         for i, win in enumerate(windows):

@@ -48,3 +48,55 @@ def test_sliding_windows_cover_the_range_with_overlap():
     # any 10 cm object within range lies wholly inside one window
     for z in np.linspace(0.3, 1.7, 50):
         assert any(n <= z and z + 0.1 <= f + 1e-9 for n, f in w)
+
+
+def _floor_scene(h=0.3, box=True, noise=0.0, seed=0):
+    """Depth (640x480, fx 610) of a level camera ``h`` m above a floor, with a 6 x 10 cm-ish object at 1 m."""
+    K = np.array([[610.0, 0, 319.5], [0, 610.0, 239.5], [0, 0, 1]])
+    vv, uu = np.mgrid[0:480, 0:640].astype(float)
+    y = (vv - K[1, 2]) / K[1, 1]
+    with np.errstate(divide="ignore"):
+        z = np.where(y > 1e-3, h / y, 0.0)
+    z[z > 8.0] = 0.0  # beyond the range: no return
+    if box:
+        z[200:262, 290:330] = 1.0  # an object's front face at 1 m, well above the floor
+    if noise:
+        z = z + np.random.default_rng(seed).normal(0, noise, z.shape) * (z > 0)
+    return z.astype(np.float32), K
+
+
+def test_floor_is_fitted_and_only_windows_holding_something_count():
+    from stack.depth_window import depth_points, fit_floor, window_content
+
+    depth, K = _floor_scene(noise=0.003)
+    floor = fit_floor(depth_points(depth, K)[0])
+    assert floor is not None
+    n, d = floor
+    assert abs(d - 0.3) < 0.01 and n[1] < -0.99  # the camera's height, normal up (-y in the optical frame)
+    wins = sliding_windows(0.3, 1.8, 0.3, 0.1)
+    counts = window_content(depth, K, wins, floor)
+    for (near, far), c in zip(wins, counts):
+        if near <= 1.0 <= far:
+            assert c > 200  # the object's pixels
+        else:
+            assert c < 40  # floor only
+    # no floor in view (camera looking at a wall): every window counts as full
+    wall = np.full((480, 640), 1.2, np.float32)
+    assert min(window_content(wall, K, wins)) > 10 ** 6
+
+
+def test_depth_detector_skips_floor_only_windows():
+    from sim.objects import load_catalog
+    from stack.dope_fpr import DopeDetector, default_weights
+    from stack.messages import CameraFrame, CameraInfo
+
+    if not default_weights("depth").exists():
+        pytest.skip("no shipped depth weights")
+    dims = {c: s.dims for c, s in load_catalog().items()}
+    det = DopeDetector(input="depth", dims=dims, threads=1)
+    depth, K = _floor_scene(box=False)
+    frame = CameraFrame(0.0, CameraInfo(640, 480, K), depth_m=depth)
+    assert det.detect(frame) == [] and det.windows_run == 0 and det.windows_skipped == len(det.depth_windows)
+    depth, K = _floor_scene(box=True)
+    det.detect(CameraFrame(0.0, CameraInfo(640, 480, K), depth_m=depth))
+    assert det.windows_run == sum(near <= 1.0 <= far for near, far in det.depth_windows)
