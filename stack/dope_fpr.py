@@ -480,6 +480,9 @@ class DopeDetector:
                 window) -> list[Detection]:
         """Detections from one input's maps (belief (C*9,h,w), affinity (C*16,h,w)) at one stage count."""
         dets = []
+        # with depth to fit to, a depth window's range check waits for the fitted range: PnP's range of a
+        # small object is often tens of centimetres off (its corners a pixel or two apart at 320x240)
+        refine_later = self.depth_refine and frame.depth_m is not None
         W, H = frame.info.width, frame.info.height
         sx, sy = W / self.input_size[0], H / self.input_size[1]
         for ci, cls in enumerate(self.classes):
@@ -499,7 +502,7 @@ class DopeDetector:
                 T, err = sol
                 if err > self.max_reproj_px * sx:
                     continue
-                if window is not None and not (window[0] - 0.05 <= T[2, 3] <= window[1] + 0.05):
+                if window is not None and not refine_later and not self._in_window(T, window):
                     continue
                 passed = (not self.fpr) or self.thresholds.passes(cls, stages, bsum)  # + depth check later
                 dets.append(Detection(cls=cls, stamp=frame.stamp, T_cam_obj=T, keypoints_px=uv,
@@ -507,6 +510,14 @@ class DopeDetector:
                                       extra={"reproj_px": err, "n_keypoints": int(np.isfinite(uv[:, 0]).sum()),
                                              "input": self.input, "window": window}))
         return dets
+
+    @staticmethod
+    def _in_window(T: np.ndarray, window, margin_m: float = 0.05) -> bool:
+        return window[0] - margin_m <= T[2, 3] <= window[1] + margin_m
+
+    def _window_filter(self, dets: list[Detection]) -> list[Detection]:
+        """Detections of a depth window whose (depth-fitted) range lies in that window."""
+        return [d for d in dets if d.extra.get("window") is None or self._in_window(d.T_cam_obj, d.extra["window"])]
 
     @staticmethod
     def _dedupe(dets: list[Detection], radius_m: float = 0.05) -> list[Detection]:
@@ -580,11 +591,16 @@ class DopeDetector:
             dets = []
             for i, win in enumerate(windows):
                 dets += self._decode(b[i], a[i], frame, s, win)
-            result[s] = self._dedupe(dets) if len(windows) > 1 else dets
-        for dets in result.values():
-            self._depth_refine(frame, dets)
-            self._colour_check(frame, dets)
+            result[s] = self._fit_and_filter(frame, dets, len(windows))
         return result
+
+    def _fit_and_filter(self, frame: CameraFrame, dets: list[Detection], n_inputs: int) -> list[Detection]:
+        """Depth fit, depth windows' range check, one detection per (class, place), colour check."""
+        self._depth_refine(frame, dets)
+        dets = self._window_filter(dets)
+        dets = self._dedupe(dets) if n_inputs > 1 else dets
+        self._colour_check(frame, dets)
+        return dets
 
     def detect(self, frame: CameraFrame) -> list[Detection]:
         """Detections (with FPR verdicts) of the configured stage count."""
@@ -595,7 +611,4 @@ class DopeDetector:
         dets = []
         for i, win in enumerate(windows):
             dets += self._decode(b[i], a[i], frame, self.stages, win)
-        dets = self._dedupe(dets) if len(windows) > 1 else dets
-        self._depth_refine(frame, dets)
-        self._colour_check(frame, dets)
-        return dets
+        return self._fit_and_filter(frame, dets, len(windows))

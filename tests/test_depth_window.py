@@ -100,3 +100,23 @@ def test_depth_detector_skips_floor_only_windows():
     depth, K = _floor_scene(box=True)
     det.detect(CameraFrame(0.0, CameraInfo(640, 480, K), depth_m=depth))
     assert det.windows_run == sum(near <= 1.0 <= far for near, far in det.depth_windows)
+
+
+def test_depth_windows_range_check_uses_the_fitted_range():
+    """A small object's PnP range is often tens of centimetres off; the window keeps a detection whose
+    depth-fitted range lies in it, and drops one that lies outside."""
+    from sim.objects import load_catalog
+    from stack.dope_fpr import DopeDetector, default_weights
+    from stack.messages import Detection
+
+    if not default_weights("depth").exists():
+        pytest.skip("no shipped depth weights")
+    det = DopeDetector(input="depth", dims={c: s.dims for c, s in load_catalog().items()}, threads=1)
+
+    def at(z):
+        T = np.eye(4)
+        T[2, 3] = z
+        return Detection("Yogurt", 0.0, T, np.zeros((9, 2)), np.ones(9), 10.0, extra={"window": (1.1, 1.4)})
+
+    kept = det._window_filter([at(1.25), at(1.9), at(1.42)])
+    assert [d.T_cam_obj[2, 3] for d in kept] == [1.25, 1.42]
