@@ -462,7 +462,7 @@ def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
     fpr = file_sha256(thresholds, 12) if thresholds.exists() else "none"
     ident = f"dope:{input_mode}:w{file_sha256(path)}:fpr{fpr}:rule{FPR_RULE_VERSION}"
     if input_mode == "depth":  # which depth windows run (floor-only windows are skipped) is part of the perception
-        ident += f":windows{getattr(detector, 'window_min_pixels', DEPTH_WINDOW_MIN_PIXELS)}"
+        ident += f":windows{getattr(detector, 'window_min_pixels', DEPTH_WINDOW_MIN_PIXELS)}:fitted-range"
     if input_mode == "rgb":
         from stack.dope_fpr import default_colour_model_path
 
