@@ -363,7 +363,7 @@ class DopeDetector:
     depth_windows: [(near, far), ...] metres for depth input (None = sliding 0.3-1.8 m windows of
     0.3 m overlapping 0.1 m).
     window_min_pixels (depth input): a window runs through the network only when at least this many
-    sampled pixels (every second row and column) inside it stand above the floor, which is fitted to
+    sampled pixels (every second row and column at 640x480, every pixel at 320x240) inside it stand above the floor, which is fitted to
     the frame's depth (:func:`stack.depth_window.window_content`; no floor found: every window runs).
     A window that holds only floor (and what is beyond it) costs a network pass and finds nothing but
     false positives. 0 runs every window.
@@ -455,7 +455,9 @@ class DopeDetector:
             raise ValueError("DopeDetector(input='depth') got a CameraFrame without depth_m")
         windows = list(self.depth_windows)
         if self.window_min_pixels > 0:
-            counts = window_content(frame.depth_m, np.asarray(frame.info.K, dtype=float), windows)
+            # every second pixel at 640x480, every pixel at 320x240: the counts mean the same at any size
+            step = max(1, int(round(frame.info.width / 320)))
+            counts = window_content(frame.depth_m, np.asarray(frame.info.K, dtype=float), windows, step=step)
             windows = [win for win, n in zip(windows, counts) if n >= self.window_min_pixels]
         self.windows_run += len(windows)
         self.windows_skipped += len(self.depth_windows) - len(windows)
