@@ -13,7 +13,8 @@ def _datagen(args) -> int:
     from sim.datagen import DatagenConfig, generate
 
     cfg = DatagenConfig(out_dir=Path(args.out), n_images=args.images, shard_size=args.shard_size, seed=args.seed,
-                        workers=args.workers, width=args.width, height=args.height)
+                        workers=args.workers, width=args.width, height=args.height,
+                        slim_stand_prob=args.slim_stand_prob)
     paths = generate(cfg)
     print(f"{len(paths)} shards ({args.images} images) in {args.out}")
     return 0
@@ -129,6 +130,9 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
+    p.add_argument("--slim-stand-prob", type=float, default=0.5,
+                   help="share of objects on stands that stand on a slim one, as in the scenarios (0 reproduces "
+                        "the data of the RGB weights and of the first depth weights)")
     p.set_defaults(func=_datagen)
 
     t = subparsers.add_parser("train", help="train (or resume) the DOPE network on datagen shards")
