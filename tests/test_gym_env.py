@@ -472,3 +472,18 @@ def test_real_detector_identity_changes_with_weights_thresholds_and_colour_model
     d = dope_detector_id("rgb", w)
     assert len({a, b, c, d}) == 4
     assert "rule" in a and "colour" in a
+
+
+def test_policy_table_warns_when_object_slots_run_out():
+    """A map with more candidate objects than slots drops detections: the table says so."""
+    from testbed.commands.policy import summarise, table_markdown
+
+    def run(dropped):
+        return {"policy": "robust-mean", "scenario": "sc", "seed": 0, "objects": 6, "mean_error_m": 0.02,
+                "false_labels": 0, "missing": 0, "unmatched_map_objects": 3, "return": 0.0,
+                "dropped_detections": dropped}
+
+    ok = table_markdown(summarise(["robust-mean"], ["sc"], [0], [run(0)]))
+    full = table_markdown(summarise(["robust-mean"], ["sc"], [0], [run(37)]))
+    assert "no free object slot" not in ok
+    assert "up to 37 detections per episode found no free object slot" in full

@@ -119,6 +119,12 @@ def evaluate(names: list[str], scenarios: list[str], seeds, env_kwargs: dict) ->
                 runs.append({"policy": name, "scenario": str(sc), "seed": seed, "input": r["episode"]["input"],
                              "frames": r["steps"], "return": r["return"], **r["summary"], "labels": r["labels"]})
         env.close()
+    slots = env_kwargs.get("max_objects") or 16
+    for sc in scenarios:
+        dropped = max((r.get("dropped_detections") or 0) for r in runs if r["scenario"] == str(sc))
+        if dropped:
+            log.warning("%s: up to %d detections per episode found no free object slot (--max-objects %d): "
+                        "the policies are scored on a truncated map; raise --max-objects", sc, dropped, slots)
     return summarise(names, [str(s) for s in scenarios], seeds, runs)
 
 
@@ -202,6 +208,11 @@ def table_markdown(result: dict) -> str:
             lines.append(f"| {name} | {row or '-'} | {_fmt(g['mean_error_cm'])} | {_fmt(g['false_labels'], 2)} | "
                          f"{_fmt(g['missing'], 2)} | {_fmt(g['unmatched_map_objects'], 2)} | {pe if pe != '' else '-'} | "
                          f"{pf if pf != '' else '-'} |")
+        dropped = max((r.get("dropped_detections") or 0) for r in result.get("runs", []) if r["scenario"] == sc) \
+            if sc != "all" and result.get("runs") else 0
+        if dropped:
+            lines.append(f"\nwarning: up to {dropped} detections per episode found no free object slot; "
+                         "raise --max-objects")
         t = result["targets"].get(sc)
         if t:
             lines.append(f"\nbest non-oracle baseline: {t['best_non_oracle']}; beats last and last-fpr with no more "
