@@ -176,7 +176,8 @@ class _World:
             T = spec.standing_pose([pos_h[0], pos_h[1], zb], yaw)
             self._place(body, T[:3, 3], T[:3, :3])
             on_stand = zb > 0.01 and stands
-            if on_stand and cfg.slim_stand_prob > 0 and rng.random() < cfg.slim_stand_prob:  # 0: no draw, the old data
+            # slim_stand_prob 0 makes no draw: the data of the earlier weights, exactly
+            if on_stand and cfg.slim_stand_prob > 0 and rng.random() < cfg.slim_stand_prob:
                 st = self.slim_stands[ci]  # under the object, turned with it
                 self._place(st, [pos_h[0], pos_h[1], zb - 0.6], Rotation.from_euler("z", yaw).as_matrix())
                 self._retexture(st)

@@ -67,15 +67,15 @@ def sliding_windows(range_min: float = 0.3, range_max: float = 2.0, size: float 
 
 # --- which windows hold anything: the floor is fitted and left out -----------------------------------
 
-def depth_points(depth_m: np.ndarray, K: np.ndarray, step: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) camera-frame points of every ``step``-th pixel with a valid depth, and their (N, 2) pixel (u, v)."""
+def depth_points(depth_m: np.ndarray, K: np.ndarray, step: int = 2) -> np.ndarray:
+    """(N, 3) camera-frame points of every ``step``-th pixel (rows and columns) with a valid depth."""
     z = np.asarray(depth_m, dtype=np.float32)[::step, ::step]
     vv, uu = np.mgrid[0:z.shape[0], 0:z.shape[1]]
     ok = np.isfinite(z) & (z > 0)
     u, v, d = uu[ok].astype(np.float64) * step, vv[ok].astype(np.float64) * step, z[ok].astype(np.float64)
     x = (u - K[0, 2]) / K[0, 0] * d
     y = (v - K[1, 2]) / K[1, 1] * d
-    return np.stack([x, y, d], axis=1), np.stack([u, v], axis=1)
+    return np.stack([x, y, d], axis=1)
 
 
 def fit_floor(points: np.ndarray, iterations: int = 80, tolerance_m: float = 0.015, max_tilt_deg: float = 30.0,
@@ -128,7 +128,7 @@ def window_content(depth_m: np.ndarray, K: np.ndarray, windows, floor=None, step
     by more than ``max(min_height_m, noise_sigmas * sigma(z))`` (sigma(z) = ``sigma_at_1m`` z^2, the
     D435i's published RMS error). ``floor``: ``(n, d)`` from :func:`fit_floor`, or None to fit it here;
     with no floor found every window counts as full (a large number)."""
-    pts, _ = depth_points(depth_m, K, step)
+    pts = depth_points(depth_m, K, step)
     if floor is None:
         floor = fit_floor(pts)
     if floor is None:

@@ -59,6 +59,7 @@ from stack.messages import CameraFrame, Detection
 log = logging.getLogger(__name__)
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
+WINDOW_MIN_PIXELS = 40  # default of DopeDetector(window_min_pixels=...): depth windows holding fewer are skipped
 MEAN, STD = 0.5, 0.25  # as in training (stack.dope_train)
 
 
@@ -363,8 +364,9 @@ class DopeDetector:
     depth_windows: [(near, far), ...] metres for depth input (None = sliding 0.3-1.8 m windows of
     0.3 m overlapping 0.1 m).
     window_min_pixels (depth input): a window runs through the network only when at least this many
-    sampled pixels (every second row and column at 640x480, every pixel at 320x240) inside it stand above the floor, which is fitted to
-    the frame's depth (:func:`stack.depth_window.window_content`; no floor found: every window runs).
+    sampled pixels (every second row and column at 640x480, every pixel at 320x240) inside it stand
+    above the floor, which is fitted to the frame's depth (:func:`stack.depth_window.window_content`;
+    no floor found: every window runs).
     A window that holds only floor (and what is beyond it) costs a network pass and finds nothing but
     false positives. 0 runs every window.
     depth_refine: slide each detection along its viewing ray to fit the frame's aligned depth
@@ -388,7 +390,7 @@ class DopeDetector:
                  depth_windows=None, device: str | None = None, threads: int | None = None,
                  depth_refine: bool = True, depth_check: bool = True, colour_check: bool = True,
                  colour=None, colour_margin: float = 0.0, min_colour_brightness: float = 20.0,
-                 window_min_pixels: int = 40):
+                 window_min_pixels: int = WINDOW_MIN_PIXELS):
         if input not in ("rgb", "depth"):
             raise ValueError(f"input must be 'rgb' or 'depth', got {input!r}")
         if not dims:
@@ -420,7 +422,7 @@ class DopeDetector:
         self.depth_check = bool(depth_check)
         self.depth_windows = list(depth_windows) if depth_windows else sliding_windows(0.3, 1.8, 0.3, 0.1)
         self.window_min_pixels = int(window_min_pixels)
-        self.windows_run = 0  # depth windows run through the network (and skipped), for reports
+        self.windows_run = 0  # depth windows run through the network, and those skipped (counters)
         self.windows_skipped = 0
         self.colour_check = bool(colour_check) and input == "rgb"
         self.colour_margin = float(colour_margin)

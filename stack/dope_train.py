@@ -66,7 +66,7 @@ class TrainConfig:
     min_visible: float = 0.15  # an object is a target when this fraction of its cuboid hull is seen
     threads: int = 0
     classes: tuple = ("OrangeJuice", "Yogurt", "Mustard", "Raisins", "Cookies", "E")
-    class_weights: dict = field(default_factory=dict)  # {class: weight} for picking a crop's focal object (default 1)
+    class_weights: dict = field(default_factory=dict)  # {class: weight} picking a crop's focal object (default 1)
     extra: dict = field(default_factory=dict)
 
 
@@ -243,7 +243,8 @@ def sample_batch(data: ShardData, cfg: TrainConfig, rng: np.random.Generator, in
         x0 = int(np.clip(round(c[0] - cw / 2), 0, W - cw))
         y0 = int(np.clip(round(c[1] - ch / 2), 0, H - ch))
         if cfg.input == "depth":
-            window = cfg.depth_window if cfg.depth_window[1] > cfg.depth_window[0] else choose_window(objs, rng, focus=focus)
+            fixed = cfg.depth_window[1] > cfg.depth_window[0]
+            window = cfg.depth_window if fixed else choose_window(objs, rng, focus=focus)
             img = depth_input(data.depth[i], window)[y0:y0 + ch, x0:x0 + cw]
             img = augment_depth(img, rng)
             in_window = [o for o in objs if window[0] - 0.05 <= o[2][2] <= window[1] + 0.05]

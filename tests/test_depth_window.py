@@ -69,7 +69,7 @@ def test_floor_is_fitted_and_only_windows_holding_something_count():
     from stack.depth_window import depth_points, fit_floor, window_content
 
     depth, K = _floor_scene(noise=0.003)
-    floor = fit_floor(depth_points(depth, K)[0])
+    floor = fit_floor(depth_points(depth, K))
     assert floor is not None
     n, d = floor
     assert abs(d - 0.3) < 0.01 and n[1] < -0.99  # the camera's height, normal up (-y in the optical frame)

@@ -36,7 +36,9 @@ def short_scenario(tmp_path):
 @pytest.fixture
 def short_dark_scenario(tmp_path, short_scenario):
     path = tmp_path / "columns_short_dark.toml"
-    path.write_text(SHORT.format(base="experiment3_columns.toml").replace('name = "columns_short"', 'name = "columns_short_dark"\nlight = 0.0'))
+    dark = SHORT.format(base="experiment3_columns.toml").replace('name = "columns_short"',
+                                                                 'name = "columns_short_dark"\nlight = 0.0')
+    path.write_text(dark)
     from sim.scenario import load_scenario
 
     assert load_scenario(path).light == 0.0  # RGB is black: only depth can label

@@ -12,6 +12,8 @@ def _datagen(args) -> int:
 
     from sim.datagen import DatagenConfig, generate
 
+    if not 0.0 <= args.slim_stand_prob <= 1.0:
+        raise SystemExit(f"--slim-stand-prob: expected a share from 0 to 1, got {args.slim_stand_prob}")
     cfg = DatagenConfig(out_dir=Path(args.out), n_images=args.images, shard_size=args.shard_size, seed=args.seed,
                         workers=args.workers, width=args.width, height=args.height,
                         slim_stand_prob=args.slim_stand_prob)
@@ -24,6 +26,7 @@ def parse_class_weights(items) -> dict:
     """``["Yogurt=3", ...]`` -> ``{"Yogurt": 3.0}``; a malformed item names the flag and the form expected."""
     from stack.dope_train import TrainConfig
 
+    classes = list(TrainConfig.__dataclass_fields__["classes"].default)
     out = {}
     for item in items or []:
         cls, sep, w = item.partition("=")
@@ -31,9 +34,9 @@ def parse_class_weights(items) -> dict:
             weight = float(w)
         except ValueError:
             weight = -1.0
-        if not sep or cls not in TrainConfig.__dataclass_fields__["classes"].default or weight <= 0:
-            raise SystemExit(f"--class-weight: expected CLASS=WEIGHT with CLASS one of "
-                             f"{list(TrainConfig.__dataclass_fields__['classes'].default)} and WEIGHT > 0, got {item!r}")
+        if not sep or cls not in classes or weight <= 0:
+            raise SystemExit(f"--class-weight: expected CLASS=WEIGHT with CLASS one of {classes} and WEIGHT > 0, "
+                             f"got {item!r}")
         out[cls] = weight
     return out
 

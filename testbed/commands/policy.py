@@ -121,11 +121,16 @@ def evaluate(names: list[str], scenarios: list[str], seeds, env_kwargs: dict) ->
         env.close()
     slots = env_kwargs.get("max_objects") or 16
     for sc in scenarios:
-        dropped = max((r.get("dropped_detections") or 0) for r in runs if r["scenario"] == str(sc))
+        dropped = max_dropped(runs, str(sc))
         if dropped:
             log.warning("%s: up to %d detections per episode found no free object slot (--max-objects %d): "
                         "the policies are scored on a truncated map; raise --max-objects", sc, dropped, slots)
     return summarise(names, [str(s) for s in scenarios], seeds, runs)
+
+
+def max_dropped(runs: list[dict], scenario: str) -> int:
+    """The most detections one episode of ``scenario`` dropped for want of a free object slot."""
+    return max((r.get("dropped_detections") or 0 for r in runs if r["scenario"] == scenario), default=0)
 
 
 def _stats(values: list) -> dict:
@@ -208,8 +213,7 @@ def table_markdown(result: dict) -> str:
             lines.append(f"| {name} | {row or '-'} | {_fmt(g['mean_error_cm'])} | {_fmt(g['false_labels'], 2)} | "
                          f"{_fmt(g['missing'], 2)} | {_fmt(g['unmatched_map_objects'], 2)} | {pe if pe != '' else '-'} | "
                          f"{pf if pf != '' else '-'} |")
-        dropped = max((r.get("dropped_detections") or 0) for r in result.get("runs", []) if r["scenario"] == sc) \
-            if sc != "all" and result.get("runs") else 0
+        dropped = max_dropped(result.get("runs", []), sc) if sc != "all" else 0
         if dropped:
             lines.append(f"\nwarning: up to {dropped} detections per episode found no free object slot; "
                          "raise --max-objects")

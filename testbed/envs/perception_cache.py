@@ -50,7 +50,6 @@ log = logging.getLogger(__name__)
 CACHE_VERSION = 1
 FPR_RULE_VERSION = 2  # 1: belief sum + depth check; 2: + colour check, recalibrated fall-back
 ENV_CACHE_DIR = "DOPESLAM_CACHE"
-DEPTH_WINDOW_MIN_PIXELS = 40  # stack.dope_fpr.DopeDetector's default
 DEFAULT_THUMB = (160, 120)
 
 DetectorFactory = Callable[[object], object]
@@ -462,7 +461,9 @@ def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
     fpr = file_sha256(thresholds, 12) if thresholds.exists() else "none"
     ident = f"dope:{input_mode}:w{file_sha256(path)}:fpr{fpr}:rule{FPR_RULE_VERSION}"
     if input_mode == "depth":  # which depth windows run (floor-only windows are skipped) is part of the perception
-        ident += f":windows{getattr(detector, 'window_min_pixels', DEPTH_WINDOW_MIN_PIXELS)}:fitted-range"
+        from stack.dope_fpr import WINDOW_MIN_PIXELS
+
+        ident += f":windows{getattr(detector, 'window_min_pixels', WINDOW_MIN_PIXELS)}:fitted-range"
     if input_mode == "rgb":
         from stack.dope_fpr import default_colour_model_path
 
