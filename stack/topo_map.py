@@ -41,6 +41,7 @@ from stack.transforms import inv
 
 log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
+REVISIT = "revisit"  # the edge kind joining a node to the same place on an earlier pass
 
 
 @dataclass
@@ -109,17 +110,21 @@ class TopoMap:
         self.edges.append(e)
         return e
 
-    def neighbours(self) -> dict[int, list[tuple[int, float]]]:
+    def neighbours(self, forward_only: bool = False) -> dict[int, list[tuple[int, float]]]:
+        """Adjacency with edge costs. ``forward_only``: the mapping run's edges only the way it drove
+        them (``revisit`` edges, joining one place seen on two passes, stay both ways)."""
         adj: dict[int, list[tuple[int, float]]] = {n.id: [] for n in self.nodes}
         for e in self.edges:
             w = e.length_m + 0.05  # a small cost per edge: fewer hops among equal lengths
             adj[e.a].append((e.b, w))
-            adj[e.b].append((e.a, w))
+            if not forward_only or e.kind == REVISIT:
+                adj[e.b].append((e.a, w))
         return adj
 
-    def shortest_path(self, start: int, goal: int) -> list[int] | None:
-        """Dijkstra over the undirected graph, edge cost = translation length (+ 5 cm per hop)."""
-        adj = self.neighbours()
+    def shortest_path(self, start: int, goal: int, forward_only: bool = False) -> list[int] | None:
+        """Dijkstra over the graph (undirected unless ``forward_only``), edge cost = translation
+        length (+ 5 cm per hop)."""
+        adj = self.neighbours(forward_only)
         dist = {start: 0.0}
         prev: dict[int, int] = {}
         heap = [(0.0, start)]
@@ -523,6 +528,55 @@ def localise(topo: TopoMap, rgb: np.ndarray, tree, k: int = 3, method: str = "or
         if best is None or fix.inliers > best.inliers:
             best = fix
     return best
+
+
+def add_revisit_edges(topo: TopoMap, tree, k: int = 5, min_gap_nodes: int = 20, min_inliers: int = 30,
+                      seed: int = 0) -> int:
+    """Join each node to the node of an earlier pass at the same place (a route driven twice): the
+    vocabulary tree proposes ``k`` nodes at least ``min_gap_nodes`` earlier, the pose of the node's
+    own features against their points (ORPE in RANSAC) verifies; the best verified one becomes a
+    ``revisit`` edge with that relative pose. Returns the number of edges added; records
+    ``meta['revisits']``."""
+    rng = np.random.default_rng(seed)
+    have = {(e.a, e.b) for e in topo.edges if e.kind == REVISIT}
+    added = 0
+    for n in topo.nodes:
+        if n.place_desc is None or len(n.uv) < 8:
+            continue
+        cands = [c for c, _ in topo.retrieve(tree, n.place_desc, k) if c <= n.id - min_gap_nodes]
+        if not cands:
+            continue
+        fix = localise(topo, None, tree, rng=rng, feats=n.features, candidates=cands)
+        if fix is None or fix.inliers < min_inliers or (fix.node, n.id) in have:
+            continue
+        topo.add_edge(fix.node, n.id, REVISIT, inv(topo.nodes[fix.node].T_map_camera) @ fix.T_map_camera)
+        have.add((fix.node, n.id))
+        added += 1
+    topo.meta["revisits"] = added
+    return added
+
+
+def relative_rotation(topo: TopoMap, node_id: int, feats: Features, cfg: MonoConfig | None = None,
+                      min_inliers: int = 15) -> tuple[np.ndarray, int] | None:
+    """The rotation of the current camera relative to a node's (``R_node_cur``) from all of the node's
+    features, with or without 3D points: essential matrix in RANSAC on mutual matches. For a fix of
+    the heading where the node has too few points for a full pose. Returns (R, inliers) or None."""
+    import cv2
+
+    cfg = cfg or MonoConfig()
+    node = topo.nodes[node_id]
+    i, j = match_global(node.features, feats, cfg.max_descriptor_distance)
+    if len(i) < min_inliers:
+        return None
+    a = np.ascontiguousarray(node.uv[i], dtype=np.float64)
+    b = np.ascontiguousarray(feats.uv[j], dtype=np.float64)
+    E, mask = cv2.findEssentialMat(a, b, topo.K, cv2.RANSAC, 0.999, 1.0)
+    if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < min_inliers:
+        return None
+    n, R, _, mask2 = cv2.recoverPose(E, a, b, topo.K, mask=mask.copy())
+    if n < min_inliers:
+        return None
+    return R.T, int(n)  # recoverPose gives x_cur = R x_node + t
 
 
 # --- scoring against ground truth ---------------------------------------------------------------------

@@ -44,3 +44,64 @@ def test_object_names_and_classes_resolve():
     assert resolve_object("Mustard", objs)[1].name == "Mustard_3"
     with pytest.raises(SystemExit, match="Mustard_3"):
         resolve_object("Cookies", objs)
+
+
+def _two_pass_map():
+    """Pass 1: nodes 0-2 at x = 0, 1, 2 m; pass 2: nodes 3-5 at the same places, but the mapping run's
+    odometry has drifted 0.5 m sideways and 0.1 rad by then. Map poses at half scale."""
+    from stack.topo_map import REVISIT, Node, TopoMap
+    from stack.transforms import make_T
+
+    def rot_z(a):
+        return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+
+    T_bc = make_T(np.array([[0, 0, 1.0], [-1, 0, 0], [0, -1, 0]]), [0.2, 0, 0.3])
+    m = TopoMap(np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), 640, 480, T_bc)
+    odom = {}
+    for i in range(6):
+        x = float(i % 3)
+        T_map_base = make_T(None, [0.5 * x, 0, 0])
+        m.nodes.append(Node(i, 10 * i, float(i), T_map_base @ T_bc, i // 3))
+        drift = make_T(rot_z(0.1), [0, 0.5, 0]) if i >= 3 else np.eye(4)
+        odom[i] = drift @ make_T(None, [x, 0, 0])
+        if i:
+            m.add_edge(i - 1, i, "visual" if i != 3 else "odometry")
+    m.add_edge(0, 3, REVISIT, np.eye(4))
+    return m, odom
+
+
+def test_route_jumps_passes_through_a_revisit_edge():
+    from stack.topo_map import ObjectAttribute
+    from testbed.seed2.navigate import route_length, route_poses, route_target, segment_scales, teach_route
+
+    m, odom = _two_pass_map()
+    scales = segment_scales(m, odom)
+    assert scales == {0: pytest.approx(2.0), 1: pytest.approx(2.0)}  # odometry metres per map unit
+    path = m.shortest_path(3, 2, forward_only=True)
+    assert path == [3, 0, 1, 2]
+    assert route_length(m, odom, path) == pytest.approx(2.0)
+    R = route_poses(m, odom, path, scales)
+    # in the route frame (pass 2's odometry at node 3) node 2 lies 2 m ahead of node 3
+    np.testing.assert_allclose((np.linalg.inv(R[3]) @ R[2])[:3, 3], [2, 0, 0], atol=1e-9)
+    # the mapping run's odometry at 10 frames per metre (frame 10 i is node i)
+    T_odom = np.stack([odom[f // 10] @ np.array([[1, 0, 0, (f % 10) / 10], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+                       for f in range(60)])
+    route = teach_route(m, T_odom, path, R)
+    steps = np.linalg.norm(np.diff(route[:, :2], axis=0), axis=1)
+    assert steps.max() < 0.25  # no jump (the drift is 0.5 m) where the path changes passes
+    np.testing.assert_allclose(route[-1, :2], R[2][:2, 3])
+    m.nodes[2].attributes.append(ObjectAttribute("Mustard", 1.0, [0, 0, 9, 50]))
+    assert route_target(m, "Mustard", 3, odom) == 2
+
+
+def test_pose_tracker_gates_outlying_fixes():
+    from testbed.seed2.navigate import PoseTracker
+
+    tr = PoseTracker()
+    T = np.eye(4)
+    assert tr.correct(T, np.eye(4), 0.0)
+    far = np.eye(4)
+    far[0, 3] = 2.0
+    assert not tr.correct(far, np.eye(4), 1.0)  # 2 m off one second after a fix
+    assert tr.correct(far, np.eye(4), 30.0)  # odometry may have drifted that much in 30 s
+    np.testing.assert_allclose(tr.predict(np.eye(4)), far)

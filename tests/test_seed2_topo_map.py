@@ -78,3 +78,15 @@ def test_scoring_against_ground_truth():
     assert res["summary"]["false_attributions"] == 1  # the Yogurt attribute on node 4
     assert res["summary"]["found"] == 1
     assert res["summary"]["node_position_rmse_m"] == pytest.approx(0.0)
+
+
+def test_forward_only_planning_and_revisit_edges(tmp_path):
+    from stack.topo_map import REVISIT
+
+    m = small_map()
+    assert m.shortest_path(4, 1, forward_only=True) is None  # the mapping run never drove 4 -> 1
+    assert m.shortest_path(1, 4, forward_only=True) == [1, 2, 3, 4]
+    m.add_edge(1, 4, REVISIT, np.eye(4))  # node 4 is node 1's place seen again: both ways
+    assert m.shortest_path(4, 2, forward_only=True) == [4, 1, 2]
+    m2 = TopoMap.load(m.save(tmp_path))
+    assert m2.shortest_path(4, 2, forward_only=True) == [4, 1, 2]

@@ -9,7 +9,8 @@ def register(sub) -> None:
     p.add_argument("scenario", nargs="?", default=None, help="bundled name or TOML path (default: the default scenario)")
     p.add_argument("--out", default="out/navigate")
     p.add_argument("--seed", type=int, default=0, help="perturbs the start pose and drives the sensor noise")
-    p.add_argument("--max-seconds", type=float, default=90.0, help="simulated time limit")
+    p.add_argument("--max-seconds", type=float, default=None,
+                   help="simulated time limit (default: 30 s + 2.5x the route's length at the driving speed)")
     p.set_defaults(func=_navigate)
 
     c = sub.add_parser("compare", help="DOPESLAM and the monocular semantic topological map on the same episodes, lit and dark")

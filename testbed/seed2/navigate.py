@@ -31,12 +31,14 @@ import cv2
 import numpy as np
 
 from stack.mono_pose import MonoConfig, detect_features
-from stack.topo_map import MapperConfig, TopoMap, TopoMapper, localise
+from stack.topo_map import (REVISIT, MapperConfig, TopoMap, TopoMapper, add_revisit_edges, localise,
+                            relative_rotation)
 from stack.transforms import inv, yaw_of
 from testbed.seed2.stream import CameraStream, cache_root, camera_stream
 
 log = logging.getLogger(__name__)
 SUCCESS_M = 0.5
+MIN_FIX_INLIERS = 12  # ORPE inliers (reprojection < 2 px) for a full fix against a node
 
 
 def _weights_tag() -> str:
@@ -87,17 +89,20 @@ def scenario_map(scenario=None, light: float | None = None, cache: bool = True) 
     key_cfg = {k: v for k, v in cfg.__dict__.items() if k != "attribute_min_score"}
     key = hashlib.sha1(f"{stream.scenario}/{stream.seed}/{stream.light}/{key_cfg}/{MonoConfig()}/{_weights_tag()}".encode()).hexdigest()[:10]
     d = cache_root() / "maps" / f"{stream.scenario}_{key}"
+    topo = None
     if cache and (d / "topo_map.json").exists():
         try:
             topo = TopoMap.load(d)
-            topo.meta["attribute_min_score"] = cfg.attribute_min_score
-            return topo, stream
         except ValueError as exc:
             log.warning("rebuilding the map: %s", exc)
-    log.info("building the topological map of %s", stream.scenario)
-    topo = build_map(stream, load_tree(), load_detector(), cfg)
-    if cache:
-        topo.save(d)
+    if topo is None:
+        log.info("building the topological map of %s", stream.scenario)
+        topo = build_map(stream, load_tree(), load_detector(), cfg)
+    if "revisits" not in topo.meta:  # places seen on two passes joined (a map cached before they were)
+        log.info("%s: %d revisit edges", stream.scenario, add_revisit_edges(topo, load_tree()))
+        if cache:
+            topo.save(d)
+    topo.meta["attribute_min_score"] = cfg.attribute_min_score
     return topo, stream
 
 
@@ -117,48 +122,144 @@ def resolve_object(name: str, objects) -> tuple[str, object]:
 
 
 class PoseTracker:
-    """The robot's pose in the map: visual fixes, wheel odometry in between."""
+    """The robot's pose in the route frame: visual fixes, wheel odometry in between."""
 
-    def __init__(self, T_base_camera: np.ndarray):
-        self.T_base_camera = T_base_camera
-        self.T_map_base_fix: np.ndarray | None = None
+    def __init__(self):
+        self.T_route_base_fix: np.ndarray | None = None
         self.T_odom_fix: np.ndarray | None = None
         self.fix_time = -np.inf
-        self.segment = -1
         self.fixes = 0
+        self.heading_fixes = 0
+        self.rejected = 0
 
     def predict(self, T_odom_base: np.ndarray) -> np.ndarray | None:
-        if self.T_map_base_fix is None:
+        if self.T_route_base_fix is None:
             return None
-        return self.T_map_base_fix @ inv(self.T_odom_fix) @ T_odom_base
+        return self.T_route_base_fix @ inv(self.T_odom_fix) @ T_odom_base
 
-    def correct(self, T_map_camera: np.ndarray, T_odom_base: np.ndarray, t: float, segment: int = 0) -> bool:
-        """Take a visual fix unless it disagrees with a recent fix of the same map segment (segments
-        are joined only by a bridge, so a fix from another segment restarts the track)."""
-        T_map_base = T_map_camera @ inv(self.T_base_camera)
+    def correct(self, T_route_base: np.ndarray, T_odom_base: np.ndarray, t: float, heading_only: bool = False) -> bool:
+        """Take a visual fix unless it disagrees with the prediction by more than odometry can have
+        drifted since the last fix (the gate widens with the time since it). ``heading_only``: a
+        fix of the heading alone (its position is the prediction's); it does not reset the age."""
         pred = self.predict(T_odom_base)
-        if pred is not None and t - self.fix_time < 5.0 and segment == self.segment:
-            d = np.linalg.norm(pred[:3, 3] - T_map_base[:3, 3])
-            R = pred[:3, :3].T @ T_map_base[:3, :3]
-            ang = math.degrees(math.acos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
-            if d > 0.6 or ang > 25:  # an outlying fix: keep the odometry
+        if pred is not None:
+            age = t - self.fix_time
+            d = float(np.linalg.norm(pred[:2, 3] - T_route_base[:2, 3]))
+            dyaw = abs((yaw_of(T_route_base) - yaw_of(pred) + math.pi) % (2 * math.pi) - math.pi)
+            if d > 0.4 + 0.1 * age or math.degrees(dyaw) > 12.0 + 2.0 * age:  # an outlying fix: keep the odometry
+                self.rejected += 1
                 return False
-        self.T_map_base_fix = T_map_base
+        self.T_route_base_fix = T_route_base.copy()
         self.T_odom_fix = T_odom_base.copy()
+        if heading_only:
+            self.heading_fixes += 1
+            return True
         self.fix_time = t
-        self.segment = segment
         self.fixes += 1
         return True
 
 
-def _plane(T_nav_map: np.ndarray, T_map_base: np.ndarray) -> tuple[float, float, float]:
-    T = T_nav_map @ T_map_base
-    return float(T[0, 3]), float(T[1, 3]), yaw_of(T)
+def segment_scales(topo: TopoMap, T_odom_node: dict[int, np.ndarray]) -> dict[int, float]:
+    """Per map segment, metres of the mapping run's wheel odometry per map unit along its visual
+    edges (the monocular scale drifts from one segment to the next; 1.0 where it cannot be told)."""
+    num: dict[int, float] = {}
+    den: dict[int, float] = {}
+    for e in topo.edges:
+        a, b = topo.nodes[e.a], topo.nodes[e.b]
+        if e.kind != "visual" or a.segment != b.segment:
+            continue
+        num[a.segment] = num.get(a.segment, 0.0) + float(np.linalg.norm(T_odom_node[b.id][:2, 3] - T_odom_node[a.id][:2, 3]))
+        den[a.segment] = den.get(a.segment, 0.0) + e.length_m
+    return {s: (num[s] / den[s] if den[s] > 1e-6 and num[s] > 0.05 else 1.0) for s in num}
 
 
-def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int = 0, max_seconds: float = 90.0,
-             localise_every: int = 3, speed: float = 0.25, topo: TopoMap | None = None,
+def route_target(topo: TopoMap, cls: str, start: int, T_odom_node: dict[int, np.ndarray],
+                 size_frac: float = 0.5) -> int | None:
+    """The node to drive to for ``cls``: of the nodes holding it with a box at least ``size_frac`` of
+    its largest (the object seen from near), the one nearest the start over the graph, driven the
+    way the mapping run drove."""
+    found = topo.nodes_with(cls)
+    if not found:
+        return None
+    h_max = found[0][1].height_px
+    best, best_len = None, np.inf
+    for nid in {nid for nid, a in found if a.height_px >= size_frac * h_max}:
+        path = topo.shortest_path(start, nid, forward_only=True)
+        if path is None:
+            continue
+        length = route_length(topo, T_odom_node, path)
+        if length < best_len:
+            best, best_len = nid, length
+    return best
+
+
+def _edges(topo: TopoMap) -> dict[tuple[int, int], object]:
+    out = {}
+    for e in topo.edges:
+        out.setdefault((e.a, e.b), e)
+        out.setdefault((e.b, e.a), e)
+    return out
+
+
+def route_length(topo: TopoMap, T_odom_node: dict[int, np.ndarray], path: list[int]) -> float:
+    """Metres along the path: the mapping run's odometry between consecutive nodes, ~0 at a revisit."""
+    edges = _edges(topo)
+    return sum(0.0 if edges[(a, b)].kind == REVISIT else
+               float(np.linalg.norm(T_odom_node[b][:2, 3] - T_odom_node[a][:2, 3])) for a, b in zip(path, path[1:]))
+
+
+def route_poses(topo: TopoMap, T_odom_node: dict[int, np.ndarray], path: list[int],
+                scales: dict[int, float]) -> dict[int, np.ndarray]:
+    """Each path node's base pose in the route frame (the mapping run's odometry frame at the path's
+    first node): chained by the odometry between consecutive nodes of one pass, by the revisit
+    edge's visual relative pose (scaled) where the path jumps to another pass."""
+    edges = _edges(topo)
+    T_bc = topo.T_base_camera
+    R = {path[0]: T_odom_node[path[0]]}
+    for u, v in zip(path, path[1:]):
+        e = edges[(u, v)]
+        if e.kind == REVISIT:
+            T_cam = e.T_a_b.copy()
+            T_cam[:3, 3] *= scales.get(topo.nodes[e.a].segment, 1.0)
+            T_u_v = T_cam if e.a == u else inv(T_cam)
+            R[v] = R[u] @ T_bc @ T_u_v @ inv(T_bc)
+        else:
+            R[v] = R[u] @ inv(T_odom_node[u]) @ T_odom_node[v]
+    return R
+
+
+def teach_route(topo: TopoMap, T_odom_teach: np.ndarray, path: list[int], R: dict[int, np.ndarray],
+                spacing: float = 0.1) -> np.ndarray:
+    """The route to repeat: the mapping run's wheel-odometry trajectory through the path's nodes
+    (x, y, yaw in the route frame), one point every ``spacing`` metres."""
+    edges = _edges(topo)
+    pts = [R[path[0]]]
+    for a, b in zip(path, path[1:]):
+        if edges[(a, b)].kind == REVISIT:
+            pts.append(R[b])
+            continue
+        G = R[a] @ inv(T_odom_teach[topo.nodes[a].frame])
+        fa, fb = topo.nodes[a].frame, topo.nodes[b].frame
+        step = 1 if fb >= fa else -1
+        pts.extend(G @ T_odom_teach[f] for f in range(fa + step, fb + step, step))
+    xy = [(float(T[0, 3]), float(T[1, 3]), yaw_of(T)) for T in pts]
+    out = [xy[0]]
+    for q in xy[1:-1]:
+        if math.hypot(q[0] - out[-1][0], q[1] - out[-1][1]) >= spacing:
+            out.append(q)
+    if len(xy) > 1:
+        out.append(xy[-1])
+    return np.asarray(out)
+
+
+def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int = 0, max_seconds: float | None = None,
+             localise_every: int = 3, speed: float = 0.5, topo: TopoMap | None = None,
              stream: CameraStream | None = None, tree=None, target_node: int | None = None) -> dict:
+    """Teach and repeat over the topological map: the path is planned over the graph, the robot
+    repeats the mapping run's trajectory along it (its wheel odometry between the path's nodes,
+    the route frame) and corrects its pose in that frame with visual fixes against the path's
+    nodes (each fix is relative to a node, so the map's segments need not agree with each other);
+    the last metres converge on the target node's key frame."""
     import pybullet as p
 
     from sim.camera import render_rgbd
@@ -171,22 +272,49 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
     wall0 = time.perf_counter()
     if topo is None or stream is None:
         topo, stream = scenario_map(scenario)
+    if stream.T_odom_base is None:
+        raise ValueError(f"{stream.scenario}: the mapping stream has no wheel odometry (T_odom_base) to repeat")
     tree = tree or load_tree()
     cls, obj = resolve_object(object_name, stream.objects)
     k_obj = [o.name for o in stream.objects].index(obj.name)
-    target = topo.target_node(cls) if target_node is None else target_node
     report = {"object": object_name, "class": cls, "scenario": stream.scenario, "seed": seed,
-              "map": {"nodes": len(topo), "edges": len(topo.edges), "segments": topo.meta.get("segments")},
-              "target_node": target}
-    if target is None:
-        report.update({"reached": False, "success": False, "reason": f"no node of the map holds {cls}",
-                       "final_distance_m": None, "distance_to_object_m": None, "path_length_m": 0.0})
-        write_json(out / "navigate.json", report)
-        return report
-    T_base_cam = topo.T_base_camera
-    node_base = {n.id: n.T_map_camera @ inv(T_base_cam) for n in topo.nodes}
-    T_nav_map = inv(node_base[0])  # the plane of the first node's base_link
+              "map": {"nodes": len(topo), "edges": len(topo.edges), "segments": len(topo.meta.get("segments") or [])}}
+    T_bc = topo.T_base_camera
+    T_odom_teach = stream.T_odom_base
+    T_odom_node = {n.id: T_odom_teach[n.frame] for n in topo.nodes}
+    scales = segment_scales(topo, T_odom_node)
     true_node_base = {n.id: stream.T_world_camera[n.frame] @ inv(stream.T_base_camera) for n in topo.nodes}
+    usable = [n.id for n in topo.nodes if int(np.isfinite(n.points_map[:, 0]).sum()) >= 8]
+
+    R = dict(T_odom_node)  # node poses in the route frame (until a path is planned: the odometry's)
+
+    def fix_in_route(fix) -> tuple[np.ndarray, np.ndarray]:
+        """(T_route_base, T_node_base) of a fix against node ``fix.node``."""
+        node = topo.nodes[fix.node]
+        T_node_cam = inv(node.T_map_camera) @ fix.T_map_camera
+        T_node_cam[:3, 3] *= scales.get(node.segment, 1.0)
+        T_node_base = T_bc @ T_node_cam @ inv(T_bc)
+        return R[node.id] @ T_node_base, T_node_base
+
+    def heading_fix(feats, pose, T_odom, t, T_world_base) -> bool:
+        """No full fix: the heading from the rotation against the nearest path node (position kept)."""
+        near = _candidates(path, list(R), R, pose, n=1)
+        if not near:
+            return False
+        rel = relative_rotation(topo, near[0], feats, mono_cfg)
+        if rel is None:
+            return False
+        T_node_cam = np.eye(4)
+        T_node_cam[:3, :3] = rel[0]
+        yaw_rel = yaw_of(T_bc @ T_node_cam @ inv(T_bc))
+        T_fix = pose.copy()
+        c, s = math.cos(yaw_of(R[near[0]]) + yaw_rel), math.sin(yaw_of(R[near[0]]) + yaw_rel)
+        T_fix[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+        ok = tracker.correct(T_fix, T_odom, t, heading_only=True)
+        true_yaw = yaw_of(inv(true_node_base[near[0]]) @ T_world_base)
+        heading_log.append({"t": round(t, 2), "node": near[0], "inliers": rel[1], "accepted": ok,
+                            "error_deg": math.degrees((yaw_rel - true_yaw + math.pi) % (2 * math.pi) - math.pi)})
+        return ok
 
     sc = load_scenario(scenario if scenario is not None else stream.scenario)
     rng = np.random.default_rng(seed)
@@ -196,81 +324,107 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
     sc.sensors.camera_width, sc.sensors.camera_height = topo.width, topo.height
     sc.sensors.lidar = False
     mono_cfg = MonoConfig()
-    tracker = PoseTracker(T_base_cam)
+    tracker = PoseTracker()
     path: list[int] | None = None
-    wp = 0
+    route = None
+    target = target_node
+    progress = 0
     trace = []
     fix_log = []
+    heading_log = []
     loc_seconds = 0.0
     loc_calls = 0
     done = False
+    limit = 60.0 if max_seconds is None else float(max_seconds)
+    last_log = time.perf_counter()
     with Episode(sc, seed=seed, light=None) as ep:
         dt = ep.dt
         cam_every = max(1, int(round(1.0 / (sc.sensors.camera_rate * dt))))
-        steps = int(max_seconds / dt)
         v = w = 0.0
         frame_no = 0
-        for k in range(steps):
+        k = 0
+        while k * dt < limit:
             t = k * dt
             T_world_base = ep.robot.T_world_base()
             if k > 0:
                 ep.robot.update_odometry(dt)
             T_odom = ep.robot.T_odom_base.copy()
             trace.append(T_world_base[:3, 3].copy())
+            pose = tracker.predict(T_odom)
+            near_end = route is not None and pose is not None and progress >= len(route) - 15
             if k % cam_every == 0:
-                if frame_no % localise_every == 0:
+                if frame_no % (1 if near_end else localise_every) == 0:
                     T_world_cam = T_world_base @ ep.T_base_camera
                     rgb, _, _ = render_rgbd(ep.client, T_world_cam, ep.camera_info, ep.light, ep.rng_camera,
                                             sc.sensors.noise, ep.renderer)
                     t0 = time.perf_counter()
-                    pred = tracker.predict(T_odom)
-                    cands = None
-                    if pred is not None and t - tracker.fix_time < 3.0:
-                        d = [np.linalg.norm(node_base[n.id][:3, 3] - pred[:3, 3]) for n in topo.nodes]
-                        cands = [int(i) for i in np.argsort(d)[:2]]
                     feats = detect_features(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), mono_cfg)
-                    fix = localise(topo, rgb, tree, k=3, rng=rng, cfg=mono_cfg, feats=feats, candidates=cands)
-                    if fix is None and cands is not None:  # the prediction's nodes failed: ask retrieval
-                        fix = localise(topo, rgb, tree, k=3, rng=rng, cfg=mono_cfg, feats=feats)
+                    if path is None:  # where am I: retrieval over the whole map
+                        fix = _first_fix(topo, rgb, tree, rng, mono_cfg, feats)
+                    else:  # the path's nodes nearest the predicted pose, facing the same way
+                        cands = _candidates(path, usable, R, pose, target if near_end else None)
+                        fix = localise(topo, rgb, tree, rng=rng, cfg=mono_cfg, feats=feats, candidates=cands) \
+                            if cands else None
                     loc_seconds += time.perf_counter() - t0
                     loc_calls += 1
-                    if fix is not None and fix.inliers >= 20:
-                        accepted = tracker.correct(fix.T_map_camera, T_odom, t, topo.nodes[fix.node].segment)
-                        est = fix.T_map_camera @ inv(T_base_cam)
-                        fix_log.append({"t": t, "node": fix.node, "inliers": fix.inliers, "accepted": accepted,
-                                        "error_m": float(np.linalg.norm(
-                                            (true_node_base[0] @ inv(node_base[0]) @ est)[:2, 3] - T_world_base[:2, 3]))})
+                    if (fix is None or fix.inliers < MIN_FIX_INLIERS) and path is not None and pose is not None:
+                        heading_fix(feats, pose, T_odom, t, T_world_base)
+                    log.debug("t %.1f: candidates %s -> %s; %s", t, None if path is None else cands,
+                              None if fix is None else (fix.node, fix.inliers), heading_log[-1:] if heading_log else "")
+                    if fix is not None and fix.inliers >= MIN_FIX_INLIERS:
+                        T_route_base, T_node_base = fix_in_route(fix)
+                        accepted = tracker.correct(T_route_base, T_odom, t)
+                        true_rel = inv(true_node_base[fix.node]) @ T_world_base
+                        fix_log.append({"t": round(t, 2), "node": fix.node, "inliers": fix.inliers, "accepted": accepted,
+                                        "error_m": float(np.linalg.norm(true_rel[:2, 3] - T_node_base[:2, 3]))})
                         if path is None and accepted:
-                            path = topo.shortest_path(fix.node, target)
-                            wp = 0
-                            report["start_node"] = fix.node
-                            report["path"] = path
+                            if target is None:
+                                target = route_target(topo, cls, fix.node, T_odom_node)
+                            report["target_node"] = target
+                            path = None if target is None else topo.shortest_path(fix.node, target, forward_only=True)
+                            if path is None:
+                                if target is not None:
+                                    report["reason"] = f"no path from node {fix.node} to node {target}"
+                                break
+                            R = route_poses(topo, T_odom_node, path, scales)
+                            route = teach_route(topo, T_odom_teach, path, R)
+                            progress = 0
+                            route_m = float(np.sum(np.linalg.norm(np.diff(route[:, :2], axis=0), axis=1)))
+                            report.update({"start_node": fix.node, "path": path, "route_m": route_m})
+                            if max_seconds is None:
+                                limit = t + 30.0 + 2.5 * route_m / speed
                 frame_no += 1
-            # control
+            # control: pure pursuit along the route in the route frame
             pose = tracker.predict(T_odom)
-            if path is None or pose is None:
-                v, w = 0.0, 0.3 if t > 3.0 else 0.0  # look around for a first fix
+            if route is None or pose is None:
+                v, w = 0.0, 0.3 if t > 5.0 else 0.0  # look around for a first fix
             else:
-                xr, yr, yawr = _plane(T_nav_map, pose)
-                while True:
-                    gx, gy, _ = _plane(T_nav_map, node_base[path[wp]])
-                    dist = math.hypot(gx - xr, gy - yr)
-                    last = wp == len(path) - 1
-                    if not last and dist < 0.2:
-                        wp += 1
-                        continue
-                    break
-                if last and dist < 0.06:
+                xr, yr, yawr = float(pose[0, 3]), float(pose[1, 3]), yaw_of(pose)
+                window = route[progress:progress + 40, :2]
+                progress += int(np.argmin(np.linalg.norm(window - [xr, yr], axis=1)))
+                gx, gy = route[-1, 0], route[-1, 1]
+                dist_end = math.hypot(gx - xr, gy - yr)
+                last = progress >= len(route) - 3
+                if last and dist_end < 0.05:
                     done = True
                     v, w = 0.0, 0.0
                 else:
-                    err = (math.atan2(gy - yr, gx - xr) - yawr + math.pi) % (2 * math.pi) - math.pi
+                    look = progress
+                    while look < len(route) - 1 and math.hypot(route[look, 0] - xr, route[look, 1] - yr) < 0.5:
+                        look += 1
+                    lx, ly = (gx, gy) if last else (route[look, 0], route[look, 1])
+                    err = (math.atan2(ly - yr, lx - xr) - yawr + math.pi) % (2 * math.pi) - math.pi
                     w = float(np.clip(2.0 * err, -1.0, 1.0))
                     v = speed * max(0.0, math.cos(err)) ** 2 if abs(err) < 0.7 else 0.0
-                    if last:
-                        v = min(v, 0.5 * dist + 0.02)
+                    if progress >= len(route) - 15:
+                        v = min(v, 0.5 * dist_end + 0.03)
             ep.robot.command(v, w, dt)
             p.stepSimulation(physicsClientId=ep.client)
+            k += 1
+            if time.perf_counter() - last_log > 30.0:
+                last_log = time.perf_counter()
+                log.info("navigate to %s: t = %.0f s, route %s, %d fixes", object_name, t,
+                         "-" if route is None else f"{progress}/{len(route)}", tracker.fixes)
             if done:
                 # let the robot come to rest
                 for _ in range(int(0.5 / dt)):
@@ -279,25 +433,72 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
                 trace.append(ep.robot.T_world_base()[:3, 3].copy())
                 break
         T_end = ep.robot.T_world_base()
-        sim_seconds = (k + 1) * dt
+        sim_seconds = k * dt
     trace = np.asarray(trace)
+    report.setdefault("target_node", target)
+    report.update({"reached": done, "start_pose_world": sc.robot.start,
+                   "path_length_m": float(np.sum(np.linalg.norm(np.diff(trace[:, :2], axis=0), axis=1))),
+                   "sim_seconds": sim_seconds, "wall_seconds": time.perf_counter() - wall0,
+                   "localisation": {"attempts": loc_calls, "fixes": len(fix_log), "accepted": tracker.fixes,
+                                    "rejected": tracker.rejected, "heading_fixes": sum(h["accepted"] for h in heading_log),
+                                    "heading_error_deg_median": float(np.median(np.abs([h["error_deg"] for h in heading_log])))
+                                    if heading_log else None,
+                                    "seconds_per_attempt": loc_seconds / max(1, loc_calls),
+                                    "fix_error_m_median": float(np.median([f["error_m"] for f in fix_log]))
+                                    if fix_log else None}})
+    if target is None:
+        report.update({"success": False, "final_distance_m": None, "distance_to_object_m": None,
+                       "reason": "never localised" if not tracker.fixes else f"no node of the map holds {cls}"})
+        write_json(out / "navigate.json", report)
+        return report
     end_xy = T_end[:2, 3]
     report.update({
-        "reached": done, "start_pose_world": sc.robot.start,
         "final_distance_m": float(np.linalg.norm(end_xy - true_node_base[target][:2, 3])),
         "distance_to_object_m": float(np.linalg.norm(end_xy - obj.T_world_obj[:2, 3])),
         "target_node_to_object_m": float(np.linalg.norm(true_node_base[target][:2, 3] - obj.T_world_obj[:2, 3])),
         "target_node_shows_object": stream.object_in_view(topo.nodes[target].frame, k_obj, 0.3),
-        "path_length_m": float(np.sum(np.linalg.norm(np.diff(trace[:, :2], axis=0), axis=1))),
-        "sim_seconds": sim_seconds, "wall_seconds": time.perf_counter() - wall0,
-        "localisation": {"attempts": loc_calls, "fixes": len(fix_log), "accepted": tracker.fixes,
-                         "seconds_per_attempt": loc_seconds / max(1, loc_calls),
-                         "fix_error_m_median": float(np.median([f["error_m"] for f in fix_log])) if fix_log else None},
     })
     report["success"] = bool(report["final_distance_m"] <= SUCCESS_M)
     write_json(out / "navigate.json", report)
     _plot(out / "navigate.png", topo, stream, true_node_base, trace, target, report, obj)
     return report
+
+
+def _first_fix(topo: TopoMap, rgb, tree, rng, cfg: MonoConfig, feats, k: int = 5):
+    """Retrieval proposes ``k`` nodes; the first of them along the mapping run that verifies (a route
+    driven twice has twins of its start; teach and repeat starts at the first)."""
+    from stack.place_recognition import describe
+
+    f = describe(rgb)
+    if f is None:
+        return None
+    for nid in sorted(c for c, _ in topo.retrieve(tree, f.descriptors, k)):
+        fix = localise(topo, rgb, tree, rng=rng, cfg=cfg, feats=feats, candidates=[nid])
+        if fix is not None and fix.inliers >= 20:
+            return fix
+    return None
+
+
+def _candidates(path, usable, R, pose, target=None, n: int = 2) -> list[int]:
+    """The path's nodes (with 3D points) nearest the predicted pose and facing within 50 deg of it;
+    near the end the target node first."""
+    if pose is None:
+        return []
+    ok = set(usable)
+    yaw = yaw_of(pose)
+    scored = []
+    for nid in path:
+        if nid not in ok:
+            continue
+        T = R[nid]
+        if abs((yaw_of(T) - yaw + math.pi) % (2 * math.pi) - math.pi) > math.radians(50):
+            continue
+        scored.append((float(np.linalg.norm(T[:2, 3] - pose[:2, 3])), nid))
+    scored.sort()
+    out = [nid for d, nid in scored[:n] if d < 4.0]
+    if target is not None and target in ok:
+        out = [target] + [c for c in out if c != target][: n - 1]
+    return out
 
 
 def _plot(path, topo, stream, true_node_base, trace, target, report, obj) -> None:
