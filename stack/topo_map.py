@@ -557,10 +557,11 @@ def add_revisit_edges(topo: TopoMap, tree, k: int = 5, min_gap_nodes: int = 20, 
 
 
 def relative_rotation(topo: TopoMap, node_id: int, feats: Features, cfg: MonoConfig | None = None,
-                      min_inliers: int = 15) -> tuple[np.ndarray, int] | None:
-    """The rotation of the current camera relative to a node's (``R_node_cur``) from all of the node's
-    features, with or without 3D points: essential matrix in RANSAC on mutual matches. For a fix of
-    the heading where the node has too few points for a full pose. Returns (R, inliers) or None."""
+                      min_inliers: int = 15) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """The pose of the current camera relative to a node's up to scale, from all of the node's
+    features, with or without 3D points: essential matrix in RANSAC on mutual matches. For a fix
+    where the node has too few points for a metric pose. Returns (R_node_cur, the current camera's
+    direction from the node's in the node camera's frame (unit), inliers) or None."""
     import cv2
 
     cfg = cfg or MonoConfig()
@@ -573,10 +574,10 @@ def relative_rotation(topo: TopoMap, node_id: int, feats: Features, cfg: MonoCon
     E, mask = cv2.findEssentialMat(a, b, topo.K, cv2.RANSAC, 0.999, 1.0)
     if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < min_inliers:
         return None
-    n, R, _, mask2 = cv2.recoverPose(E, a, b, topo.K, mask=mask.copy())
+    n, R, t, _ = cv2.recoverPose(E, a, b, topo.K, mask=mask.copy())
     if n < min_inliers:
         return None
-    return R.T, int(n)  # recoverPose gives x_cur = R x_node + t
+    return R.T, -R.T @ t.ravel(), int(n)  # recoverPose gives x_cur = R x_node + t
 
 
 # --- scoring against ground truth ---------------------------------------------------------------------

@@ -90,3 +90,32 @@ def test_forward_only_planning_and_revisit_edges(tmp_path):
     assert m.shortest_path(4, 2, forward_only=True) == [4, 1, 2]
     m2 = TopoMap.load(m.save(tmp_path))
     assert m2.shortest_path(4, 2, forward_only=True) == [4, 1, 2]
+
+
+def test_relative_rotation_from_all_features_of_a_node():
+    """The heading fix: rotation of the current camera against a node's view from 2D-2D matches
+    (no 3D points needed), on synthetic correspondences with a known 6 deg turn."""
+    from stack.mono_pose import Features
+    from stack.topo_map import relative_rotation
+
+    rng = np.random.default_rng(3)
+    X = np.c_[rng.uniform(-4, 4, 200), rng.uniform(-1.5, 1.5, 200), rng.uniform(3, 12, 200)]  # node camera
+    a = np.radians(6.0)
+    R_cur_node = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])  # about camera y
+    t = np.array([0.1, 0.0, -0.5])
+    Xc = X @ R_cur_node.T + t
+
+    def project(P):
+        return (P[:, :2] / P[:, 2:]) * 610.0 + [319.5, 239.5]
+
+    desc = rng.normal(size=(200, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    m = TopoMap(K, 640, 480, T_BASE_CAM)
+    m.nodes.append(Node(0, 0, 0.0, np.eye(4), 0, [], project(X), desc, np.full((200, 3), np.nan)))
+    cur = Features(project(Xc) + rng.normal(0, 0.3, (200, 2)), desc)
+    R, direction, inliers = relative_rotation(m, 0, cur)
+    assert inliers > 150
+    np.testing.assert_allclose(R, R_cur_node.T, atol=2e-3)  # R_node_cur
+    centre = -R_cur_node.T @ t  # the current camera in the node camera's frame
+    np.testing.assert_allclose(direction, centre / np.linalg.norm(centre), atol=2e-2)
+    assert relative_rotation(m, 0, Features(cur.uv[:10], desc[:10])) is None  # too few matches

@@ -128,8 +128,9 @@ class PoseTracker:
         self.T_route_base_fix: np.ndarray | None = None
         self.T_odom_fix: np.ndarray | None = None
         self.fix_time = -np.inf
+        self.any_fix_time = -np.inf
         self.fixes = 0
-        self.heading_fixes = 0
+        self.weak_fixes = 0
         self.rejected = 0
 
     def predict(self, T_odom_base: np.ndarray) -> np.ndarray | None:
@@ -137,10 +138,10 @@ class PoseTracker:
             return None
         return self.T_route_base_fix @ inv(self.T_odom_fix) @ T_odom_base
 
-    def correct(self, T_route_base: np.ndarray, T_odom_base: np.ndarray, t: float, heading_only: bool = False) -> bool:
+    def correct(self, T_route_base: np.ndarray, T_odom_base: np.ndarray, t: float, weak: bool = False) -> bool:
         """Take a visual fix unless it disagrees with the prediction by more than odometry can have
-        drifted since the last fix (the gate widens with the time since it). ``heading_only``: a
-        fix of the heading alone (its position is the prediction's); it does not reset the age."""
+        drifted since the last fix (the gate widens with the time since it). ``weak``: a fix
+        up to scale (``relative_fix``); it does not reset the age of the last metric fix."""
         pred = self.predict(T_odom_base)
         if pred is not None:
             age = t - self.fix_time
@@ -151,17 +152,19 @@ class PoseTracker:
                 return False
         self.T_route_base_fix = T_route_base.copy()
         self.T_odom_fix = T_odom_base.copy()
-        if heading_only:
-            self.heading_fixes += 1
+        self.any_fix_time = t
+        if weak:
+            self.weak_fixes += 1
             return True
         self.fix_time = t
         self.fixes += 1
         return True
 
 
-def segment_scales(topo: TopoMap, T_odom_node: dict[int, np.ndarray]) -> dict[int, float]:
+def segment_scales(topo: TopoMap, T_odom_node: dict[int, np.ndarray], min_length_m: float = 2.0) -> dict[int, float]:
     """Per map segment, metres of the mapping run's wheel odometry per map unit along its visual
-    edges (the monocular scale drifts from one segment to the next; 1.0 where it cannot be told)."""
+    edges (the monocular scale drifts along a segment; 1.0 for a segment shorter than
+    ``min_length_m``)."""
     num: dict[int, float] = {}
     den: dict[int, float] = {}
     for e in topo.edges:
@@ -170,7 +173,8 @@ def segment_scales(topo: TopoMap, T_odom_node: dict[int, np.ndarray]) -> dict[in
             continue
         num[a.segment] = num.get(a.segment, 0.0) + float(np.linalg.norm(T_odom_node[b.id][:2, 3] - T_odom_node[a.id][:2, 3]))
         den[a.segment] = den.get(a.segment, 0.0) + e.length_m
-    return {s: (num[s] / den[s] if den[s] > 1e-6 and num[s] > 0.05 else 1.0) for s in num}
+    # a segment starts metric (its baseline is the odometry's); a short one keeps that scale
+    return {s: (num[s] / den[s] if den[s] > 1e-6 and num[s] >= min_length_m else 1.0) for s in num}
 
 
 def route_target(topo: TopoMap, cls: str, start: int, T_odom_node: dict[int, np.ndarray],
@@ -296,24 +300,39 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         T_node_base = T_bc @ T_node_cam @ inv(T_bc)
         return R[node.id] @ T_node_base, T_node_base
 
-    def heading_fix(feats, pose, T_odom, t, T_world_base) -> bool:
-        """No full fix: the heading from the rotation against the nearest path node (position kept)."""
-        near = _candidates(path, list(R), R, pose, n=1)
+    def relative_fix(feats, pose, T_odom, t, T_world_base) -> bool:
+        """No metric fix: the pose up to scale against the nearest path node (essential matrix on all
+        its features). The heading is taken; the position too where the robot is far enough from
+        the node for the direction to tell (the scale from the prediction); both half-way, the
+        fix being noisier than a metric one."""
+        near = _candidates(path, list(R), R, pose, target if near_end else None, n=1)
         if not near:
             return False
-        rel = relative_rotation(topo, near[0], feats, mono_cfg)
+        rel = relative_rotation(topo, near[0], feats, mono_cfg, min_inliers=20)
         if rel is None:
             return False
+        R_nc, c_dir, inliers = rel
         T_node_cam = np.eye(4)
-        T_node_cam[:3, :3] = rel[0]
-        yaw_rel = yaw_of(T_bc @ T_node_cam @ inv(T_bc))
-        T_fix = pose.copy()
-        c, s = math.cos(yaw_of(R[near[0]]) + yaw_rel), math.sin(yaw_of(R[near[0]]) + yaw_rel)
-        T_fix[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-        ok = tracker.correct(T_fix, T_odom, t, heading_only=True)
-        true_yaw = yaw_of(inv(true_node_base[near[0]]) @ T_world_base)
-        heading_log.append({"t": round(t, 2), "node": near[0], "inliers": rel[1], "accepted": ok,
-                            "error_deg": math.degrees((yaw_rel - true_yaw + math.pi) % (2 * math.pi) - math.pi)})
+        T_node_cam[:3, :3] = R_nc
+        T0 = T_bc @ T_node_cam @ inv(T_bc)  # the node-relative base pose with the camera on the node's
+        d = (T_bc[:3, :3] @ c_dir)[:2]
+        pred_rel = inv(R[near[0]]) @ pose
+        s = max(0.0, float(d @ (pred_rel[:2, 3] - T0[:2, 3])) / max(float(d @ d), 1e-9))
+        T_rel = T0.copy()
+        T_rel[:2, 3] = T0[:2, 3] + s * d
+        if np.linalg.norm(s * d) < 0.5:  # too near the node for the direction: the heading alone
+            T_rel[:3, 3] = pred_rel[:3, 3]
+        T_fix = R[near[0]] @ T_rel
+        blend = pose.copy()
+        blend[:2, 3] = 0.5 * (pose[:2, 3] + T_fix[:2, 3])
+        yaw_b = yaw_of(pose) + 0.5 * ((yaw_of(T_fix) - yaw_of(pose) + math.pi) % (2 * math.pi) - math.pi)
+        c, sn = math.cos(yaw_b), math.sin(yaw_b)
+        blend[:3, :3] = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])
+        ok = tracker.correct(blend, T_odom, t, weak=True)
+        true_rel = inv(true_node_base[near[0]]) @ T_world_base
+        relative_log.append({"t": round(t, 2), "node": near[0], "inliers": inliers, "accepted": ok,
+                            "error_deg": math.degrees((yaw_of(T_rel) - yaw_of(true_rel) + math.pi) % (2 * math.pi) - math.pi),
+                            "error_m": float(np.linalg.norm(T_rel[:2, 3] - true_rel[:2, 3]))})
         return ok
 
     sc = load_scenario(scenario if scenario is not None else stream.scenario)
@@ -331,12 +350,13 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
     progress = 0
     trace = []
     fix_log = []
-    heading_log = []
+    relative_log = []
     loc_seconds = 0.0
     loc_calls = 0
     done = False
     limit = 60.0 if max_seconds is None else float(max_seconds)
     last_log = time.perf_counter()
+    arrived_t = None
     with Episode(sc, seed=seed, light=None) as ep:
         dt = ep.dt
         cam_every = max(1, int(round(1.0 / (sc.sensors.camera_rate * dt))))
@@ -368,9 +388,9 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
                     loc_seconds += time.perf_counter() - t0
                     loc_calls += 1
                     if (fix is None or fix.inliers < MIN_FIX_INLIERS) and path is not None and pose is not None:
-                        heading_fix(feats, pose, T_odom, t, T_world_base)
+                        relative_fix(feats, pose, T_odom, t, T_world_base)
                     log.debug("t %.1f: candidates %s -> %s; %s", t, None if path is None else cands,
-                              None if fix is None else (fix.node, fix.inliers), heading_log[-1:] if heading_log else "")
+                              None if fix is None else (fix.node, fix.inliers), relative_log[-1:] if relative_log else "")
                     if fix is not None and fix.inliers >= MIN_FIX_INLIERS:
                         T_route_base, T_node_base = fix_in_route(fix)
                         accepted = tracker.correct(T_route_base, T_odom, t)
@@ -406,8 +426,11 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
                 dist_end = math.hypot(gx - xr, gy - yr)
                 last = progress >= len(route) - 3
                 if last and dist_end < 0.05:
-                    done = True
+                    # arrived by the estimate: done once a fix near the node confirms it (waiting
+                    # up to 5 s for one, localising every frame)
+                    arrived_t = t if arrived_t is None else arrived_t
                     v, w = 0.0, 0.0
+                    done = t - tracker.any_fix_time < 1.0 or t - arrived_t > 5.0
                 else:
                     look = progress
                     while look < len(route) - 1 and math.hypot(route[look, 0] - xr, route[look, 1] - yr) < 0.5:
@@ -440,12 +463,13 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
                    "path_length_m": float(np.sum(np.linalg.norm(np.diff(trace[:, :2], axis=0), axis=1))),
                    "sim_seconds": sim_seconds, "wall_seconds": time.perf_counter() - wall0,
                    "localisation": {"attempts": loc_calls, "fixes": len(fix_log), "accepted": tracker.fixes,
-                                    "rejected": tracker.rejected, "heading_fixes": sum(h["accepted"] for h in heading_log),
-                                    "heading_error_deg_median": float(np.median(np.abs([h["error_deg"] for h in heading_log])))
-                                    if heading_log else None,
+                                    "rejected": tracker.rejected, "relative_fixes": sum(h["accepted"] for h in relative_log),
+                                    "relative_heading_error_deg_median": float(np.median(np.abs([h["error_deg"] for h in relative_log])))
+                                    if relative_log else None,
                                     "seconds_per_attempt": loc_seconds / max(1, loc_calls),
                                     "fix_error_m_median": float(np.median([f["error_m"] for f in fix_log]))
-                                    if fix_log else None}})
+                                    if fix_log else None},
+                   "fixes": fix_log, "relative_fixes": relative_log})
     if target is None:
         report.update({"success": False, "final_distance_m": None, "distance_to_object_m": None,
                        "reason": "never localised" if not tracker.fixes else f"no node of the map holds {cls}"})
