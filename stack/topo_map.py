@@ -562,22 +562,46 @@ def relative_rotation(topo: TopoMap, node_id: int, feats: Features, cfg: MonoCon
     features, with or without 3D points: essential matrix in RANSAC on mutual matches. For a fix
     where the node has too few points for a metric pose. Returns (R_node_cur, the current camera's
     direction from the node's in the node camera's frame (unit), inliers) or None."""
+    return relative_pose_up_to_scale(topo.K, topo.nodes[node_id].features, feats, cfg, min_inliers)
+
+
+def relative_pose_up_to_scale(K: np.ndarray, ref: Features, feats: Features, cfg: MonoConfig | None = None,
+                              min_inliers: int = 15, points: np.ndarray | None = None,
+                              scale_out: list | None = None) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """``relative_rotation`` against any reference image's features. ``points``: the reference's 3D
+    points in its camera frame (NaN where none); with them the translation's scale is estimated
+    from each inlier that has a point (ORPE's one-point scale, the median over the points) and
+    appended to ``scale_out`` as (scale, points used)."""
     import cv2
 
     cfg = cfg or MonoConfig()
-    node = topo.nodes[node_id]
-    i, j = match_global(node.features, feats, cfg.max_descriptor_distance)
+    i, j = match_global(ref, feats, cfg.max_descriptor_distance)
     if len(i) < min_inliers:
         return None
-    a = np.ascontiguousarray(node.uv[i], dtype=np.float64)
+    a = np.ascontiguousarray(ref.uv[i], dtype=np.float64)
     b = np.ascontiguousarray(feats.uv[j], dtype=np.float64)
-    E, mask = cv2.findEssentialMat(a, b, topo.K, cv2.RANSAC, 0.999, 1.0)
+    K = np.asarray(K, dtype=np.float64)
+    E, mask = cv2.findEssentialMat(a, b, K, cv2.RANSAC, 0.999, 1.0)
     if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < min_inliers:
         return None
-    n, R, t, _ = cv2.recoverPose(E, a, b, topo.K, mask=mask.copy())
+    n, R, t, inl = cv2.recoverPose(E, a, b, K, mask=mask.copy())
     if n < min_inliers:
         return None
-    return R.T, -R.T @ t.ravel(), int(n)  # recoverPose gives x_cur = R x_node + t
+    t = t.ravel()
+    if points is not None and scale_out is not None:
+        keep = (inl.ravel() > 0) & np.isfinite(points[i][:, 0])
+        if keep.sum() >= 3:
+            P = points[i][keep] @ R.T  # the points rotated into the current camera, before translation
+            xy = (np.c_[b[keep], np.ones(int(keep.sum()))] @ np.linalg.inv(K).T)[:, :2]
+            # x (P_z + s t_z) = P_x + s t_x  ->  s (x t_z - t_x) = P_x - x P_z (and the same in y)
+            a_x, b_x = xy[:, 0] * t[2] - t[0], P[:, 0] - xy[:, 0] * P[:, 2]
+            a_y, b_y = xy[:, 1] * t[2] - t[1], P[:, 1] - xy[:, 1] * P[:, 2]
+            den = a_x ** 2 + a_y ** 2
+            ok = den > 1e-6
+            if ok.sum() >= 3:
+                s = (a_x * b_x + a_y * b_y)[ok] / den[ok]
+                scale_out.append((float(np.median(s)), int(ok.sum())))
+    return R.T, -R.T @ t, int(n)  # recoverPose gives x_cur = R x_node + t
 
 
 # --- scoring against ground truth ---------------------------------------------------------------------

@@ -119,3 +119,12 @@ def test_relative_rotation_from_all_features_of_a_node():
     centre = -R_cur_node.T @ t  # the current camera in the node camera's frame
     np.testing.assert_allclose(direction, centre / np.linalg.norm(centre), atol=2e-2)
     assert relative_rotation(m, 0, Features(cur.uv[:10], desc[:10])) is None  # too few matches
+    # with some of the node's 3D points, the translation's metric scale (ORPE's one-point scale)
+    from stack.topo_map import relative_pose_up_to_scale
+
+    pts = np.full_like(X, np.nan)
+    pts[::4] = X[::4]
+    scale = []
+    relative_pose_up_to_scale(K, m.nodes[0].features, cur, points=pts, scale_out=scale)
+    assert scale and scale[0][1] >= 30
+    assert scale[0][0] == pytest.approx(np.linalg.norm(t), rel=0.05)
