@@ -159,10 +159,8 @@ class PoseTracker:
             age = t - self.fix_time
             d = float(np.linalg.norm(pred[:2, 3] - T_route_base[:2, 3]))
             dyaw = math.degrees(abs((yaw_of(T_route_base) - yaw_of(pred) + math.pi) % (2 * math.pi) - math.pi))
-            if weak:  # already half-way to the prediction; noisier than a metric fix
-                outlier = d > 0.75 or dyaw > min(30.0, 6.0 + 2.0 * (t - self.any_fix_time))
-            else:
-                outlier = d > 0.4 + 0.1 * age or dyaw > 12.0 + 2.0 * age
+            # (a weak fix is gated by the caller, before it is blended with the prediction)
+            outlier = not weak and (d > 0.4 + 0.1 * age or dyaw > 12.0 + 2.0 * age)
             if outlier:  # keep the odometry
                 self.rejected += 1
                 return False
@@ -362,10 +360,10 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         return R[node.id] @ T_node_base, T_node_base
 
     def relative_fix(feats, pose, T_odom, t, T_world_base) -> bool:
-        """No metric fix: the pose up to scale against the nearest path node (essential matrix on all
-        its features). The heading is taken; the position too where the robot is far enough from
-        the node for the direction to tell (the scale from the prediction); both half-way, the
-        fix being noisier than a metric one."""
+        """No metric fix: the pose up to scale against the route's images nearest the predicted pose
+        (essential matrix on all their features). The heading is taken; the position too where the robot is far enough from
+        the node for the direction to tell (the scale from the node's points, else from the
+        prediction); both part of the way, by the fix's inliers (noisier than a metric fix)."""
         yaw = yaw_of(pose)
         near = sorted((float(np.linalg.norm(r.T[:2, 3] - pose[:2, 3])), k) for k, r in enumerate(refs)
                       if abs((yaw_of(r.T) - yaw + math.pi) % (2 * math.pi) - math.pi) < math.radians(50))
@@ -396,9 +394,19 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         if np.linalg.norm(s * d) < 0.7 and not scale:  # too near for the direction: the heading alone
             T_rel[:3, 3] = pred_rel[:3, 3]
         T_fix = ref.T @ T_rel
+        # gated on its own disagreement with the prediction (not the blend's)
+        dyaw = math.degrees(abs((yaw_of(T_fix) - yaw_of(pose) + math.pi) % (2 * math.pi) - math.pi))
+        if dyaw > min(30.0, 6.0 + 2.0 * (t - tracker.any_fix_time)) or \
+                np.linalg.norm(T_fix[:2, 3] - pose[:2, 3]) > 1.5:
+            tracker.rejected += 1
+            relative_log.append({"t": round(t, 2), "frame": ref.frame, "inliers": inliers, "accepted": False,
+                                 "error_deg": None, "error_m": None})
+            return False
+        # weighted by its inliers: 0.1 of the way at 20 or fewer, half-way from 45
+        alpha = float(np.clip((inliers - 15) / 60.0, 0.1, 0.5))
         blend = pose.copy()
-        blend[:2, 3] = 0.5 * (pose[:2, 3] + T_fix[:2, 3])
-        yaw_b = yaw_of(pose) + 0.5 * ((yaw_of(T_fix) - yaw_of(pose) + math.pi) % (2 * math.pi) - math.pi)
+        blend[:2, 3] = pose[:2, 3] + alpha * (T_fix[:2, 3] - pose[:2, 3])
+        yaw_b = yaw_of(pose) + alpha * ((yaw_of(T_fix) - yaw_of(pose) + math.pi) % (2 * math.pi) - math.pi)
         c, sn = math.cos(yaw_b), math.sin(yaw_b)
         blend[:3, :3] = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])
         ok = tracker.correct(blend, T_odom, t, weak=True)
@@ -449,7 +457,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
             if k % cam_every == 0:
                 if frame_no % (1 if near_end else localise_every) == 0:
                     T_world_cam = T_world_base @ ep.T_base_camera
-                    rgb, _, _ = render_rgbd(ep.client, T_world_cam, ep.camera_info, ep.light, ep.rng_camera,
+                    rgb, _, _ = render_rgbd(ep.client, T_world_cam, ep.camera_info, ep.light_at(t), ep.rng_camera,
                                             sc.sensors.noise, ep.renderer)
                     t0 = time.perf_counter()
                     feats = detect_features(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), mono_cfg)
@@ -539,8 +547,9 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
                    "sim_seconds": sim_seconds, "wall_seconds": time.perf_counter() - wall0,
                    "localisation": {"attempts": loc_calls, "fixes": len(fix_log), "accepted": tracker.fixes,
                                     "rejected": tracker.rejected, "relative_fixes": sum(h["accepted"] for h in relative_log),
-                                    "relative_heading_error_deg_median": float(np.median(np.abs([h["error_deg"] for h in relative_log])))
-                                    if relative_log else None,
+                                    "relative_heading_error_deg_median": float(np.median(np.abs(
+                                        [h["error_deg"] for h in relative_log if h["accepted"]])))
+                                    if any(h["accepted"] for h in relative_log) else None,
                                     "seconds_per_attempt": loc_seconds / max(1, loc_calls),
                                     "fix_error_m_median": float(np.median([f["error_m"] for f in fix_log]))
                                     if fix_log else None},
