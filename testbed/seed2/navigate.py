@@ -159,8 +159,10 @@ class PoseTracker:
             age = t - self.fix_time
             d = float(np.linalg.norm(pred[:2, 3] - T_route_base[:2, 3]))
             dyaw = math.degrees(abs((yaw_of(T_route_base) - yaw_of(pred) + math.pi) % (2 * math.pi) - math.pi))
-            # (a weak fix is gated by the caller, before it is blended with the prediction)
-            outlier = not weak and (d > 0.4 + 0.1 * age or dyaw > 12.0 + 2.0 * age)
+            if weak:  # already blended with the prediction; noisier than a metric fix
+                outlier = d > 0.75 or dyaw > min(30.0, 6.0 + 2.0 * (t - self.any_fix_time))
+            else:
+                outlier = d > 0.4 + 0.1 * age or dyaw > 12.0 + 2.0 * age
             if outlier:  # keep the odometry
                 self.rejected += 1
                 return False
@@ -361,9 +363,10 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
 
     def relative_fix(feats, pose, T_odom, t, T_world_base) -> bool:
         """No metric fix: the pose up to scale against the route's images nearest the predicted pose
-        (essential matrix on all their features). The heading is taken; the position too where the robot is far enough from
-        the node for the direction to tell (the scale from the node's points, else from the
-        prediction); both part of the way, by the fix's inliers (noisier than a metric fix)."""
+        (essential matrix on all their features). The heading is taken; the position too where the
+        robot is far enough from the image for the direction to tell (the scale from the node's
+        points, else from the prediction); both part of the way, by the fix's inliers (noisier than
+        a metric fix)."""
         yaw = yaw_of(pose)
         near = sorted((float(np.linalg.norm(r.T[:2, 3] - pose[:2, 3])), k) for k, r in enumerate(refs)
                       if abs((yaw_of(r.T) - yaw + math.pi) % (2 * math.pi) - math.pi) < math.radians(50))
@@ -394,14 +397,6 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         if np.linalg.norm(s * d) < 0.7 and not scale:  # too near for the direction: the heading alone
             T_rel[:3, 3] = pred_rel[:3, 3]
         T_fix = ref.T @ T_rel
-        # gated on its own disagreement with the prediction (not the blend's)
-        dyaw = math.degrees(abs((yaw_of(T_fix) - yaw_of(pose) + math.pi) % (2 * math.pi) - math.pi))
-        if dyaw > min(30.0, 6.0 + 2.0 * (t - tracker.any_fix_time)) or \
-                np.linalg.norm(T_fix[:2, 3] - pose[:2, 3]) > 1.5:
-            tracker.rejected += 1
-            relative_log.append({"t": round(t, 2), "frame": ref.frame, "inliers": inliers, "accepted": False,
-                                 "error_deg": None, "error_m": None})
-            return False
         # weighted by its inliers: 0.1 of the way at 20 or fewer, half-way from 45
         alpha = float(np.clip((inliers - 15) / 60.0, 0.1, 0.5))
         blend = pose.copy()
