@@ -285,10 +285,11 @@ class RouteImage:
 
 
 def route_references(topo: TopoMap, stream: CameraStream, path: list[int], R: dict[int, np.ndarray],
-                     cfg: MonoConfig, scales: dict[int, float], spacing: float = 0.5) -> list[RouteImage]:
-    """The mapping run's images along the path, one every ``spacing`` metres of its odometry (visual
-    teach and repeat keeps them: the map's nodes are sparse where tracking was lost, in turns and
-    along bare walls). The path's nodes are among them, with their own features."""
+                     cfg: MonoConfig, scales: dict[int, float], spacing: float = 0.5,
+                     turn_deg: float = 10.0) -> list[RouteImage]:
+    """The mapping run's images along the path, one every ``spacing`` metres or ``turn_deg`` of its
+    odometry (visual teach and repeat keeps them: the map's nodes are sparse where tracking was
+    lost, in turns and along bare walls). The path's nodes are among them, with their own features."""
     edges = _edges(topo)
     T_bc = stream.T_base_camera
 
@@ -307,8 +308,9 @@ def route_references(topo: TopoMap, stream: CameraStream, path: list[int], R: di
             last = stream.T_odom_base[fa]
             for f in range(fa + step, fb, step):
                 To = stream.T_odom_base[f]
-                if np.linalg.norm(To[:2, 3] - last[:2, 3]) < spacing or \
-                        np.linalg.norm(To[:2, 3] - stream.T_odom_base[fb][:2, 3]) < 0.5 * spacing:
+                turned = abs((yaw_of(To) - yaw_of(last) + math.pi) % (2 * math.pi) - math.pi) > math.radians(turn_deg)
+                if not turned and (np.linalg.norm(To[:2, 3] - last[:2, 3]) < spacing or
+                                   np.linalg.norm(To[:2, 3] - stream.T_odom_base[fb][:2, 3]) < 0.5 * spacing):
                     continue
                 last = To
                 gray = cv2.cvtColor(stream.rgb[f], cv2.COLOR_RGB2GRAY)
