@@ -556,22 +556,16 @@ def add_revisit_edges(topo: TopoMap, tree, k: int = 5, min_gap_nodes: int = 20, 
     return added
 
 
-def relative_rotation(topo: TopoMap, node_id: int, feats: Features, cfg: MonoConfig | None = None,
-                      min_inliers: int = 15) -> tuple[np.ndarray, np.ndarray, int] | None:
-    """The pose of the current camera relative to a node's up to scale, from all of the node's
-    features, with or without 3D points: essential matrix in RANSAC on mutual matches. For a fix
-    where the node has too few points for a metric pose. Returns (R_node_cur, the current camera's
-    direction from the node's in the node camera's frame (unit), inliers) or None."""
-    return relative_pose_up_to_scale(topo.K, topo.nodes[node_id].features, feats, cfg, min_inliers)
-
-
 def relative_pose_up_to_scale(K: np.ndarray, ref: Features, feats: Features, cfg: MonoConfig | None = None,
-                              min_inliers: int = 15, points: np.ndarray | None = None,
-                              scale_out: list | None = None) -> tuple[np.ndarray, np.ndarray, int] | None:
-    """``relative_rotation`` against any reference image's features. ``points``: the reference's 3D
-    points in its camera frame (NaN where none); with them the translation's scale is estimated
-    from each inlier that has a point (ORPE's one-point scale, the median over the points) and
-    appended to ``scale_out`` as (scale, points used)."""
+                              min_inliers: int = 15, points: np.ndarray | None = None
+                              ) -> tuple[np.ndarray, np.ndarray, int, tuple[float, int] | None] | None:
+    """The pose of the current camera relative to a reference image's (a node's, or any image's
+    features), up to scale: essential matrix in RANSAC on mutual matches of all features, with or
+    without 3D points. For a fix where too few points are matched for a metric pose. ``points``:
+    the reference's 3D points in its camera frame (NaN where none); with them the translation's
+    scale is estimated from each inlier that has a point (ORPE's one-point scale, the median).
+    Returns (R_ref_cur, the current camera's direction from the reference's in the reference
+    camera's frame (unit), inliers, (scale, points used) or None), or None."""
     import cv2
 
     cfg = cfg or MonoConfig()
@@ -588,7 +582,8 @@ def relative_pose_up_to_scale(K: np.ndarray, ref: Features, feats: Features, cfg
     if n < min_inliers:
         return None
     t = t.ravel()
-    if points is not None and scale_out is not None:
+    scale = None
+    if points is not None:
         keep = (inl.ravel() > 0) & np.isfinite(points[i][:, 0])
         if keep.sum() >= 3:
             P = points[i][keep] @ R.T  # the points rotated into the current camera, before translation
@@ -600,8 +595,8 @@ def relative_pose_up_to_scale(K: np.ndarray, ref: Features, feats: Features, cfg
             ok = den > 1e-6
             if ok.sum() >= 3:
                 s = (a_x * b_x + a_y * b_y)[ok] / den[ok]
-                scale_out.append((float(np.median(s)), int(ok.sum())))
-    return R.T, -R.T @ t, int(n)  # recoverPose gives x_cur = R x_node + t
+                scale = (float(np.median(s)), int(ok.sum()))
+    return R.T, -R.T @ t, int(n), scale  # recoverPose gives x_cur = R x_ref + t
 
 
 # --- scoring against ground truth ---------------------------------------------------------------------

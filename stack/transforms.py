@@ -4,6 +4,8 @@ Quaternions are (x, y, z, w), as in ROS and PyBullet.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -40,6 +42,11 @@ def from_xyz_rpy(xyz, rpy) -> np.ndarray:
 
 def yaw_of(T: np.ndarray) -> float:
     return float(np.arctan2(T[1, 0], T[0, 0]))
+
+
+def wrap_angle(a: float) -> float:
+    """An angle in radians brought into [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:

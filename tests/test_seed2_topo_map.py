@@ -92,11 +92,11 @@ def test_forward_only_planning_and_revisit_edges(tmp_path):
     assert m2.shortest_path(4, 2, forward_only=True) == [4, 1, 2]
 
 
-def test_relative_rotation_from_all_features_of_a_node():
+def test_relative_pose_up_to_scale_from_all_features_of_a_node():
     """The heading fix: rotation of the current camera against a node's view from 2D-2D matches
     (no 3D points needed), on synthetic correspondences with a known 6 deg turn."""
     from stack.mono_pose import Features
-    from stack.topo_map import relative_rotation
+    from stack.topo_map import relative_pose_up_to_scale
 
     rng = np.random.default_rng(3)
     X = np.c_[rng.uniform(-4, 4, 200), rng.uniform(-1.5, 1.5, 200), rng.uniform(3, 12, 200)]  # node camera
@@ -113,18 +113,16 @@ def test_relative_rotation_from_all_features_of_a_node():
     m = TopoMap(K, 640, 480, T_BASE_CAM)
     m.nodes.append(Node(0, 0, 0.0, np.eye(4), 0, [], project(X), desc, np.full((200, 3), np.nan)))
     cur = Features(project(Xc) + rng.normal(0, 0.3, (200, 2)), desc)
-    R, direction, inliers = relative_rotation(m, 0, cur)
+    R, direction, inliers, scale = relative_pose_up_to_scale(K, m.nodes[0].features, cur)
     assert inliers > 150
     np.testing.assert_allclose(R, R_cur_node.T, atol=2e-3)  # R_node_cur
     centre = -R_cur_node.T @ t  # the current camera in the node camera's frame
     np.testing.assert_allclose(direction, centre / np.linalg.norm(centre), atol=2e-2)
-    assert relative_rotation(m, 0, Features(cur.uv[:10], desc[:10])) is None  # too few matches
+    assert scale is None  # no points given
+    assert relative_pose_up_to_scale(K, m.nodes[0].features, Features(cur.uv[:10], desc[:10])) is None  # too few matches
     # with some of the node's 3D points, the translation's metric scale (ORPE's one-point scale)
-    from stack.topo_map import relative_pose_up_to_scale
-
     pts = np.full_like(X, np.nan)
     pts[::4] = X[::4]
-    scale = []
-    relative_pose_up_to_scale(K, m.nodes[0].features, cur, points=pts, scale_out=scale)
-    assert scale and scale[0][1] >= 30
-    assert scale[0][0] == pytest.approx(np.linalg.norm(t), rel=0.05)
+    scale = relative_pose_up_to_scale(K, m.nodes[0].features, cur, points=pts)[3]
+    assert scale is not None and scale[1] >= 30
+    assert scale[0] == pytest.approx(np.linalg.norm(t), rel=0.05)

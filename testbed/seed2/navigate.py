@@ -45,7 +45,7 @@ import numpy as np
 from stack.mono_pose import MonoConfig, detect_features
 from stack.topo_map import (REVISIT, MapperConfig, TopoMap, TopoMapper, add_revisit_edges, localise,
                             relative_pose_up_to_scale)
-from stack.transforms import inv, yaw_of
+from stack.transforms import inv, wrap_angle, yaw_of
 from testbed.seed2.stream import CameraStream, cache_root, camera_stream
 
 log = logging.getLogger(__name__)
@@ -142,7 +142,6 @@ class PoseTracker:
         self.fix_time = -np.inf
         self.any_fix_time = -np.inf
         self.fixes = 0
-        self.weak_fixes = 0
         self.rejected = 0
 
     def predict(self, T_odom_base: np.ndarray) -> np.ndarray | None:
@@ -158,7 +157,7 @@ class PoseTracker:
         if pred is not None:
             age = t - self.fix_time
             d = float(np.linalg.norm(pred[:2, 3] - T_route_base[:2, 3]))
-            dyaw = math.degrees(abs((yaw_of(T_route_base) - yaw_of(pred) + math.pi) % (2 * math.pi) - math.pi))
+            dyaw = math.degrees(abs(wrap_angle(yaw_of(T_route_base) - yaw_of(pred))))
             if weak:  # already blended with the prediction; noisier than a metric fix
                 outlier = d > 0.75 or dyaw > min(30.0, 6.0 + 2.0 * (t - self.any_fix_time))
             else:
@@ -170,7 +169,6 @@ class PoseTracker:
         self.T_odom_fix = T_odom_base.copy()
         self.any_fix_time = t
         if weak:
-            self.weak_fixes += 1
             return True
         self.fix_time = t
         self.fixes += 1
@@ -308,7 +306,7 @@ def route_references(topo: TopoMap, stream: CameraStream, path: list[int], R: di
             last = stream.T_odom_base[fa]
             for f in range(fa + step, fb, step):
                 To = stream.T_odom_base[f]
-                turned = abs((yaw_of(To) - yaw_of(last) + math.pi) % (2 * math.pi) - math.pi) > math.radians(turn_deg)
+                turned = abs(wrap_angle(yaw_of(To) - yaw_of(last))) > math.radians(turn_deg)
                 if not turned and (np.linalg.norm(To[:2, 3] - last[:2, 3]) < spacing or
                                    np.linalg.norm(To[:2, 3] - stream.T_odom_base[fb][:2, 3]) < 0.5 * spacing):
                     continue
@@ -371,29 +369,28 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         a metric fix)."""
         yaw = yaw_of(pose)
         near = sorted((float(np.linalg.norm(r.T[:2, 3] - pose[:2, 3])), k) for k, r in enumerate(refs)
-                      if abs((yaw_of(r.T) - yaw + math.pi) % (2 * math.pi) - math.pi) < math.radians(50))
+                      if abs(wrap_angle(yaw_of(r.T) - yaw)) < math.radians(50))
         near = [k for dist, k in near[:4] if dist < 4.0]
         # the direction tells the position best from a reference some way off: those first
         far = [k for k in near if np.linalg.norm(refs[k].T[:2, 3] - pose[:2, 3]) >= 0.7]
         rel = None
-        scale: list = []
         for k in (far + [k for k in near if k not in far])[:2]:
             rel = relative_pose_up_to_scale(topo.K, refs[k].feats, feats, mono_cfg, min_inliers=20,
-                                            points=refs[k].points, scale_out=scale)
+                                            points=refs[k].points)
             if rel is not None:
                 ref = refs[k]
                 break
         if rel is None:
             return False
-        R_nc, c_dir, inliers = rel
+        R_nc, c_dir, inliers, scale = rel
         T_node_cam = np.eye(4)
         T_node_cam[:3, :3] = R_nc
         T0 = T_bc @ T_node_cam @ inv(T_bc)  # the node-relative base pose with the camera on the node's
         d = (T_bc[:3, :3] @ c_dir)[:2]
         pred_rel = inv(ref.T) @ pose
         s = max(0.0, float(d @ (pred_rel[:2, 3] - T0[:2, 3])) / max(float(d @ d), 1e-9))
-        if scale and scale[0][1] >= 5 and 0.0 < scale[0][0] < 10.0:  # the scale from the node's points
-            s = scale[0][0] * ref.scale
+        if scale and scale[1] >= 5 and 0.0 < scale[0] < 10.0:  # the scale from the node's points
+            s = scale[0] * ref.scale
         T_rel = T0.copy()
         T_rel[:2, 3] = T0[:2, 3] + s * d
         if np.linalg.norm(s * d) < 0.7 and not scale:  # too near for the direction: the heading alone
@@ -403,13 +400,13 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         alpha = float(np.clip((inliers - 15) / 60.0, 0.1, 0.5))
         blend = pose.copy()
         blend[:2, 3] = pose[:2, 3] + alpha * (T_fix[:2, 3] - pose[:2, 3])
-        yaw_b = yaw_of(pose) + alpha * ((yaw_of(T_fix) - yaw_of(pose) + math.pi) % (2 * math.pi) - math.pi)
+        yaw_b = yaw_of(pose) + alpha * wrap_angle(yaw_of(T_fix) - yaw_of(pose))
         c, sn = math.cos(yaw_b), math.sin(yaw_b)
         blend[:3, :3] = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])
         ok = tracker.correct(blend, T_odom, t, weak=True)
         true_rel = inv(ref.T_world) @ T_world_base
         relative_log.append({"t": round(t, 2), "frame": ref.frame, "inliers": inliers, "accepted": ok,
-                            "error_deg": math.degrees((yaw_of(T_rel) - yaw_of(true_rel) + math.pi) % (2 * math.pi) - math.pi),
+                            "error_deg": math.degrees(wrap_angle(yaw_of(T_rel) - yaw_of(true_rel))),
                             "error_m": float(np.linalg.norm(T_rel[:2, 3] - true_rel[:2, 3]))})
         return ok
 
@@ -516,7 +513,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
                     while look < len(route) - 1 and math.hypot(route[look, 0] - xr, route[look, 1] - yr) < 0.5:
                         look += 1
                     lx, ly = (gx, gy) if last else (route[look, 0], route[look, 1])
-                    err = (math.atan2(ly - yr, lx - xr) - yawr + math.pi) % (2 * math.pi) - math.pi
+                    err = wrap_angle(math.atan2(ly - yr, lx - xr) - yawr)
                     w = float(np.clip(2.0 * err, -1.0, 1.0))
                     v = speed * max(0.0, math.cos(err)) ** 2 if abs(err) < 0.7 else 0.0
                     if progress >= len(route) - 15:
@@ -596,7 +593,7 @@ def _candidates(path, usable, R, pose, target=None, n: int = 2) -> list[int]:
         if nid not in ok:
             continue
         T = R[nid]
-        if abs((yaw_of(T) - yaw + math.pi) % (2 * math.pi) - math.pi) > math.radians(50):
+        if abs(wrap_angle(yaw_of(T) - yaw)) > math.radians(50):
             continue
         scored.append((float(np.linalg.norm(T[:2, 3] - pose[:2, 3])), nid))
     scored.sort()
