@@ -507,24 +507,12 @@ def localise(topo: TopoMap, rgb: np.ndarray, tree, k: int = 3, method: str = "or
     best = None
     for nid, score in cands:
         node = topo.nodes[nid]
-        has = np.isfinite(node.points_map[:, 0])
-        if has.sum() < 8:
-            continue
-        nf = Features(node.uv[has], node.desc[has].astype(np.float32))
-        i, j = match_global(nf, feats, cfg.max_descriptor_distance)
-        if len(i) < 8:
-            continue
         T_cam_map = inv(node.T_map_camera)
-        X_node = node.points_map[has][i] @ T_cam_map[:3, :3].T + T_cam_map[:3, 3]
-        if method == "orpe":
-            est = orpe(topo.K, X_node, nf.uv[i], feats.uv[j], rng, cfg)
-        else:
-            est = grunert(topo.K, X_node, feats.uv[j], rng, cfg)
-        if est is None:
+        X_node = node.points_map @ T_cam_map[:3, :3].T + T_cam_map[:3, 3]  # NaN rows stay NaN
+        res = pose_against_points(topo.K, node.features, X_node, feats, rng, cfg, method)
+        if res is None:
             continue
-        T_cur_node = np.eye(4)
-        T_cur_node[:3, :3], T_cur_node[:3, 3] = est.R, est.t
-        fix = Fix(nid, score, node.T_map_camera @ inv(T_cur_node), int(est.inliers.sum()))
+        fix = Fix(nid, score, node.T_map_camera @ res[0], res[1])
         if best is None or fix.inliers > best.inliers:
             best = fix
     return best
@@ -597,6 +585,66 @@ def relative_pose_up_to_scale(K: np.ndarray, ref: Features, feats: Features, cfg
                 s = (a_x * b_x + a_y * b_y)[ok] / den[ok]
                 scale = (float(np.median(s)), int(ok.sum()))
     return R.T, -R.T @ t, int(n), scale  # recoverPose gives x_cur = R x_ref + t
+
+
+def points_from_pair(K: np.ndarray, ref: Features, other: Features, baseline_m: float, cfg: MonoConfig | None = None,
+                     min_inliers: int = 20) -> np.ndarray | None:
+    """3D points for a reference image's features, in its camera frame (metres; NaN where none), from a
+    second image of the same place: the relative rotation and translation direction from the
+    essential matrix (RANSAC on mutual matches), the translation's length ``baseline_m`` given (the
+    wheel odometry between the two images on a straight). None when the pair does not verify."""
+    import cv2
+
+    from stack.mono_pose import triangulate
+
+    cfg = cfg or MonoConfig()
+    if baseline_m <= 0:
+        raise ValueError(f"baseline_m: expected a positive length, got {baseline_m}")
+    i, j = match_global(ref, other, cfg.max_descriptor_distance)
+    if len(i) < min_inliers:
+        return None
+    a = np.ascontiguousarray(ref.uv[i], dtype=np.float64)
+    b = np.ascontiguousarray(other.uv[j], dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    E, mask = cv2.findEssentialMat(a, b, K, cv2.RANSAC, 0.999, 1.0)
+    if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < min_inliers:
+        return None
+    n, R, t, inl = cv2.recoverPose(E, a, b, K, mask=mask.copy())
+    if n < min_inliers:
+        return None
+    T2 = np.eye(4)
+    T2[:3, :3], T2[:3, 3] = R, t.ravel() * baseline_m  # x_other = R x_ref + t
+    keep = inl.ravel() > 0
+    X, ok = triangulate(K, np.eye(4), T2, a[keep], b[keep], cfg.min_parallax_deg, cfg.max_depth_m, cfg.inlier_px)
+    if ok.sum() < 8:
+        return None
+    out = np.full((len(ref), 3), np.nan)
+    out[i[keep][ok]] = X[ok]
+    return out
+
+
+def pose_against_points(K: np.ndarray, ref: Features, points: np.ndarray, feats: Features, rng: np.random.Generator,
+                        cfg: MonoConfig | None = None, method: str = "orpe") -> tuple[np.ndarray, int] | None:
+    """The metric pose of the current camera relative to a reference image with 3D points (its camera
+    frame, NaN where none): ORPE (or Grunert's P3P) in RANSAC on mutual matches. Returns (T_ref_cur,
+    inliers) or None."""
+    cfg = cfg or MonoConfig()
+    has = np.isfinite(points[:, 0])
+    if has.sum() < 8:
+        return None
+    sub = Features(ref.uv[has], ref.desc[has])
+    i, j = match_global(sub, feats, cfg.max_descriptor_distance)
+    if len(i) < 8:
+        return None
+    if method == "orpe":
+        est = orpe(K, points[has][i], sub.uv[i], feats.uv[j], rng, cfg)
+    else:
+        est = grunert(K, points[has][i], feats.uv[j], rng, cfg)
+    if est is None:
+        return None
+    T_cur_ref = np.eye(4)
+    T_cur_ref[:3, :3], T_cur_ref[:3, 3] = est.R, est.t
+    return inv(T_cur_ref), int(est.inliers.sum())
 
 
 # --- scoring against ground truth ---------------------------------------------------------------------

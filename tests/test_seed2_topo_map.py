@@ -126,3 +126,39 @@ def test_relative_pose_up_to_scale_from_all_features_of_a_node():
     scale = relative_pose_up_to_scale(K, m.nodes[0].features, cur, points=pts)[3]
     assert scale is not None and scale[1] >= 30
     assert scale[0] == pytest.approx(np.linalg.norm(t), rel=0.05)
+
+
+def test_points_from_an_image_pair_then_a_metric_pose_against_them():
+    """Route images without a node's points: triangulated from a second image 0.4 m further on (the
+    baseline given, as the wheel odometry gives it on a straight), then ORPE of a third view against
+    them recovers its metric pose."""
+    from stack.mono_pose import Features
+    from stack.topo_map import points_from_pair, pose_against_points
+
+    rng = np.random.default_rng(7)
+    X = np.c_[rng.uniform(-4, 4, 300), rng.uniform(-1.5, 1.5, 300), rng.uniform(3, 10, 300)]  # reference camera
+
+    def view(R, t):  # pixels of X in a camera with x_cam = R x_ref + t
+        P = X @ R.T + t
+        return (P[:, :2] / P[:, 2:]) * 610.0 + [319.5, 239.5]
+
+    desc = rng.normal(size=(300, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    ref = Features(view(np.eye(3), np.zeros(3)) + rng.normal(0, 0.2, (300, 2)), desc)
+    a = np.radians(2.0)
+    R2 = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    other = Features(view(R2, np.array([0.05, 0.0, -0.4])) + rng.normal(0, 0.2, (300, 2)), desc)
+    pts = points_from_pair(K, ref, other, baseline_m=float(np.hypot(0.05, 0.4)))
+    assert pts is not None and pts.shape == X.shape
+    ok = np.isfinite(pts[:, 0])
+    assert ok.sum() > 150
+    assert np.median(np.linalg.norm(pts[ok] - X[ok], axis=1) / np.linalg.norm(X[ok], axis=1)) < 0.03
+    # a third view 1 m on and 0.2 m to the side: its pose against the triangulated points, in metres
+    t3 = np.array([-0.2, 0.0, -1.0])
+    cur = Features(view(np.eye(3), t3) + rng.normal(0, 0.2, (300, 2)), desc)
+    T_ref_cur, inliers = pose_against_points(K, ref, pts, cur, np.random.default_rng(0))
+    assert inliers > 100
+    np.testing.assert_allclose(T_ref_cur[:3, 3], -t3, atol=0.05)
+    assert pose_against_points(K, ref, np.full_like(pts, np.nan), cur, np.random.default_rng(0)) is None
+    with pytest.raises(ValueError, match="baseline_m"):
+        points_from_pair(K, ref, other, baseline_m=0.0)

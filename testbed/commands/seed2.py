@@ -11,6 +11,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="perturbs the start pose and drives the sensor noise")
     p.add_argument("--max-seconds", type=float, default=None,
                    help="simulated time limit (default: 30 s + 2.5x the route's length at the driving speed)")
+    p.add_argument("--wheels-only", action="store_true",
+                   help="dead reckoning between fixes from the wheel odometry alone (default: its travel with the gyro's heading)")
     p.set_defaults(func=_navigate)
 
     c = sub.add_parser("compare", help="DOPESLAM and the monocular semantic topological map on the same episodes, lit and dark")

@@ -5,29 +5,36 @@ section 4.4) in the simulator, as teach and repeat over the topological map.
    (cached) goes through ``stack.topo_map.TopoMapper`` (ORPE poses, vocabulary-tree words,
    colour-verified HOG attributes), then places seen on two passes are joined by ``revisit``
    edges (``stack.topo_map.add_revisit_edges``). The map is cached by scenario and settings. The
-   mapping run's wheel odometry is kept beside it (the stream's ``T_odom_base``).
+   mapping run's dead reckoning is kept beside it (``teach_odometry``: the wheels' travel, the
+   gyro's heading).
 2. The navigation run (the repeat): a fresh episode of the same scenario whose start pose is
    perturbed by the seed (up to +-0.15 m, +-8 deg) and whose sensor noise is the seed's. The robot
-   software sees the camera and its wheel odometry only:
+   software sees the camera, its wheel odometry and its gyro only:
    - localise by retrieval (vocabulary tree -> candidate nodes, verified by ORPE against a node's
      points), the first candidate along the mapping run that verifies;
    - plan over the topological graph (Dijkstra, the mapping run's edges the way it drove them,
      revisit edges both ways) to the node holding OBJECT (``route_target``: of the nodes whose box
      of OBJECT is at least half its largest, the nearest over the graph);
-   - repeat the mapping run's trajectory along the path: its odometry between consecutive nodes,
-     chained through revisit edges by their visual relative pose (the route frame); a pure-pursuit
-     controller follows it on the robot's wheel odometry, corrected by fixes against the path's
-     nodes nearest the predicted pose: metric fixes (ORPE against the node's points, scaled by the
-     segment's odometry) and, where those fail, fixes up to scale (essential matrix on all of the
-     node's features: the heading, and the position along the visual direction). Each fix is
-     relative to a node, so the map's segments need not agree with each other; the wheel
-     odometry's own errors (it over-counts turns about twofold in the simulator) repeat those of
-     the mapping run along the same route and largely cancel;
+   - repeat the mapping run's trajectory along the path: its dead reckoning between consecutive
+     nodes, chained through revisit edges by their visual relative pose (the route frame); a
+     pure-pursuit controller follows it on the robot's own dead reckoning, corrected by fixes
+     against the route's images nearest the predicted pose (its nodes, and the mapping run's
+     images every 0.5 m or 10 deg between them): metric fixes (ORPE against an image's points: a
+     node's, scaled by its segment's odometry, or points triangulated from two mapping images on
+     a straight) and, where those fail, fixes up to scale (essential matrix on all of an image's
+     features: the heading, and the position along the visual direction). Each fix is relative to
+     one image, so the map's segments need not agree with each other;
    - the last metres converge on the target node's key frame (a fix every frame); done once a fix
      confirms the arrival.
+   Dead reckoning: the skid-steer base's wheel odometry over-counts turns two- to five-fold (the
+   wheels slip sideways, most at low yaw rates: ``benchmarks/bench_dead_reckoning.py``), and
+   differently in each turn, so between fixes the heading is the gyro's
+   (``sim.imu.Gyro``, ``stack.dead_reckoning``), as the Jackal's own odometry fuses its IMU;
+   ``gyro=False`` (``--wheels-only``) keeps the wheels' heading.
 3. Scored with ground truth: ``final_distance_m`` (robot base to the target node's true base
    position, in the plane), ``distance_to_object_m`` (to the object, in the plane),
-   ``path_length_m`` (driven).
+   ``path_length_m`` (driven); the report's ``tracking`` log is the estimate's error along and
+   across the route.
 """
 from __future__ import annotations
 
@@ -44,7 +51,8 @@ import numpy as np
 
 from stack.mono_pose import MonoConfig, detect_features
 from stack.topo_map import (REVISIT, MapperConfig, TopoMap, TopoMapper, add_revisit_edges, localise,
-                            relative_pose_up_to_scale)
+                            points_from_pair, pose_against_points, relative_pose_up_to_scale)
+from stack.dead_reckoning import DeadReckoning
 from stack.transforms import inv, wrap_angle, yaw_of
 from testbed.seed2.stream import CameraStream, cache_root, camera_stream
 
@@ -175,6 +183,31 @@ class PoseTracker:
         return True
 
 
+GYRO_STREAM = 0x6779  # the gyro's random stream, beside the episode's others (seeded by the run's seed)
+
+
+def teach_odometry(stream: CameraStream) -> np.ndarray:
+    """The mapping run's dead reckoning at its camera frames: the wheels' travel between frames (the
+    stream's wheel odometry) with the heading of its gyro (simulated on the run's true yaw, seeded
+    by the run's seed)."""
+    from sim.imu import Gyro
+
+    gyro = Gyro(np.random.default_rng([stream.seed, GYRO_STREAM]))
+    yaw_true = np.unwrap([yaw_of(T) for T in stream.T_world_base])
+    dts = np.diff(stream.gt_stamps)
+    rates = [gyro.measure(float(dy / dt), float(dt)) for dy, dt in zip(np.diff(yaw_true), dts) if dt > 0]
+    yaw_gyro = np.concatenate([[0.0], np.cumsum(np.asarray(rates) * dts[dts > 0])])
+    stamps = stream.gt_stamps[np.r_[True, dts > 0]]
+    yaw_at = np.interp(stream.stamps, stamps, yaw_gyro)
+    To = stream.T_odom_base
+    dr = DeadReckoning(To[0])
+    out = [To[0].copy()]
+    for f in range(1, len(To)):
+        step = inv(To[f - 1]) @ To[f]
+        out.append(dr.step(float(step[0, 3]), float(step[1, 3]), float(yaw_at[f] - yaw_at[f - 1])))
+    return np.asarray(out)
+
+
 def segment_scales(topo: TopoMap, T_odom_node: dict[int, np.ndarray], min_length_m: float = 2.0) -> dict[int, float]:
     """Per map segment, metres of the mapping run's wheel odometry per map unit along its visual
     edges (the monocular scale drifts along a segment; 1.0 for a segment shorter than
@@ -272,22 +305,25 @@ def teach_route(topo: TopoMap, T_odom_teach: np.ndarray, path: list[int], R: dic
 
 @dataclass
 class RouteImage:
-    """An image of the mapping run along the route: its frame, base pose in the route frame, features
-    (for fixes up to scale) and, for the report only, its true base pose."""
+    """An image of the mapping run along the route: its frame, base pose in the route frame, features,
+    3D points and, for the report only, its true base pose."""
     frame: int
     T: np.ndarray
     feats: object
     T_world: np.ndarray
-    points: np.ndarray | None = None  # a node's: its 3D points in its camera frame (map units)
-    scale: float = 1.0  # metres per map unit (the node's segment)
+    points: np.ndarray | None = None  # its features' 3D points in its camera frame (NaN where none)
+    scale: float = 1.0  # metres per unit of ``points`` (a node's: its segment's; an image's are metric)
+    node: int | None = None  # the map node it is, if it is one
 
 
-def route_references(topo: TopoMap, stream: CameraStream, path: list[int], R: dict[int, np.ndarray],
-                     cfg: MonoConfig, scales: dict[int, float], spacing: float = 0.5,
+def route_references(topo: TopoMap, stream: CameraStream, T_odom_teach: np.ndarray, path: list[int],
+                     R: dict[int, np.ndarray], cfg: MonoConfig, scales: dict[int, float], spacing: float = 0.5,
                      turn_deg: float = 10.0) -> list[RouteImage]:
     """The mapping run's images along the path, one every ``spacing`` metres or ``turn_deg`` of its
     odometry (visual teach and repeat keeps them: the map's nodes are sparse where tracking was
-    lost, in turns and along bare walls). The path's nodes are among them, with their own features."""
+    lost, in turns and along bare walls). The path's nodes are among them, with their own features
+    and points; the other images get points triangulated against a later (or earlier) image of the
+    mapping run on a straight (``image_points``)."""
     edges = _edges(topo)
     T_bc = stream.T_base_camera
 
@@ -295,31 +331,57 @@ def route_references(topo: TopoMap, stream: CameraStream, path: list[int], R: di
         n = topo.nodes[nid]
         T_cm = inv(n.T_map_camera)
         return RouteImage(n.frame, R[nid], n.features, stream.T_world_camera[n.frame] @ inv(T_bc),
-                          n.points_map @ T_cm[:3, :3].T + T_cm[:3, 3], scales.get(n.segment, 1.0))
+                          n.points_map @ T_cm[:3, :3].T + T_cm[:3, 3], scales.get(n.segment, 1.0), nid)
 
     out = [node_image(path[0])]
     for a, b in zip(path, path[1:]):
         fa, fb = topo.nodes[a].frame, topo.nodes[b].frame
         if edges[(a, b)].kind != REVISIT and abs(fb - fa) > 1:
-            G = R[a] @ inv(stream.T_odom_base[fa])
+            G = R[a] @ inv(T_odom_teach[fa])
             step = 1 if fb >= fa else -1
-            last = stream.T_odom_base[fa]
+            last = T_odom_teach[fa]
             for f in range(fa + step, fb, step):
-                To = stream.T_odom_base[f]
+                To = T_odom_teach[f]
                 turned = abs(wrap_angle(yaw_of(To) - yaw_of(last))) > math.radians(turn_deg)
                 if not turned and (np.linalg.norm(To[:2, 3] - last[:2, 3]) < spacing or
-                                   np.linalg.norm(To[:2, 3] - stream.T_odom_base[fb][:2, 3]) < 0.5 * spacing):
+                                   np.linalg.norm(To[:2, 3] - T_odom_teach[fb][:2, 3]) < 0.5 * spacing):
                     continue
                 last = To
-                gray = cv2.cvtColor(stream.rgb[f], cv2.COLOR_RGB2GRAY)
-                out.append(RouteImage(f, G @ To, detect_features(gray, cfg), stream.T_world_camera[f] @ inv(T_bc)))
+                feats = detect_features(cv2.cvtColor(stream.rgb[f], cv2.COLOR_RGB2GRAY), cfg)
+                out.append(RouteImage(f, G @ To, feats, stream.T_world_camera[f] @ inv(T_bc),
+                                      image_points(stream, T_odom_teach, f, feats, cfg)))
         out.append(node_image(b))
     return out
 
 
+def image_points(stream: CameraStream, T_odom_teach: np.ndarray, f: int, feats, cfg: MonoConfig,
+                 baseline_m: tuple[float, float] = (0.35, 0.8), max_turn_deg: float = 10.0) -> np.ndarray | None:
+    """3D points (metres, image ``f``'s camera frame) for a mapping image's features: triangulated
+    against the first image after it (else before it) that the mapping run's dead reckoning puts
+    ``baseline_m`` away on a straight; None where there is none (a turn in place) or the pair does
+    not verify."""
+    T_bc = stream.T_base_camera
+    To = T_odom_teach
+    for step in (1, -1):
+        g = f + step
+        while 0 <= g < len(stream):
+            d = float(np.linalg.norm(To[g][:2, 3] - To[f][:2, 3]))
+            if abs(wrap_angle(yaw_of(To[g]) - yaw_of(To[f]))) > math.radians(max_turn_deg) or d > baseline_m[1]:
+                break
+            if d >= baseline_m[0]:
+                T_cam = inv(T_bc) @ inv(To[f]) @ To[g] @ T_bc
+                other = detect_features(cv2.cvtColor(stream.rgb[g], cv2.COLOR_RGB2GRAY), cfg)
+                pts = points_from_pair(stream.info.K, feats, other, float(np.linalg.norm(T_cam[:3, 3])), cfg)
+                if pts is not None:
+                    return pts
+                break
+            g += step
+    return None
+
+
 def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int = 0, max_seconds: float | None = None,
              localise_every: int = 3, speed: float = 0.5, topo: TopoMap | None = None,
-             stream: CameraStream | None = None, tree=None, target_node: int | None = None) -> dict:
+             stream: CameraStream | None = None, tree=None, target_node: int | None = None, gyro: bool = True) -> dict:
     """Teach and repeat over the topological map: the path is planned over the graph, the robot
     repeats the mapping run's trajectory along it (its wheel odometry between the path's nodes,
     the route frame) and corrects its pose in that frame with visual fixes against the path's
@@ -329,6 +391,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
 
     from sim.camera import render_rgbd
     from sim.episode import Episode
+    from sim.imu import Gyro
     from sim.scenario import load_scenario
     from testbed.simulate import write_json
 
@@ -343,23 +406,31 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
     cls, obj = resolve_object(object_name, stream.objects)
     k_obj = [o.name for o in stream.objects].index(obj.name)
     report = {"object": object_name, "class": cls, "scenario": stream.scenario, "seed": seed,
+              "dead_reckoning": "wheels+gyro" if gyro else "wheels",
               "map": {"nodes": len(topo), "edges": len(topo.edges), "segments": len(topo.meta.get("segments") or [])}}
     T_bc = topo.T_base_camera
-    T_odom_teach = stream.T_odom_base
+    T_odom_teach = teach_odometry(stream) if gyro else stream.T_odom_base
     T_odom_node = {n.id: T_odom_teach[n.frame] for n in topo.nodes}
     scales = segment_scales(topo, T_odom_node)
     true_node_base = {n.id: stream.T_world_camera[n.frame] @ inv(stream.T_base_camera) for n in topo.nodes}
-    usable = [n.id for n in topo.nodes if int(np.isfinite(n.points_map[:, 0]).sum()) >= 8]
 
     R = dict(T_odom_node)  # node poses in the route frame (until a path is planned: the odometry's)
 
-    def fix_in_route(fix) -> tuple[np.ndarray, np.ndarray]:
-        """(T_route_base, T_node_base) of a fix against node ``fix.node``."""
-        node = topo.nodes[fix.node]
-        T_node_cam = inv(node.T_map_camera) @ fix.T_map_camera
-        T_node_cam[:3, 3] *= scales.get(node.segment, 1.0)
-        T_node_base = T_bc @ T_node_cam @ inv(T_bc)
-        return R[node.id] @ T_node_base, T_node_base
+    def metric_fix(feats, pose, near_end: bool):
+        """ORPE against the 3D points of the route images nearest the predicted pose (near the end, the
+        target node's first): (the image, T_route_base, T_image_base, inliers) of the best, or None."""
+        cands = _nearest_refs(refs, pose, with_points=True)
+        if near_end:
+            cands = [len(refs) - 1] + [c for c in cands if c != len(refs) - 1][:1]
+        best = None
+        for k in cands:
+            res = pose_against_points(topo.K, refs[k].feats, refs[k].points, feats, rng, mono_cfg)
+            if res is not None and (best is None or res[1] > best[3]):
+                T_ref_cam = res[0].copy()
+                T_ref_cam[:3, 3] *= refs[k].scale
+                T_ref_base = T_bc @ T_ref_cam @ inv(T_bc)
+                best = (refs[k], refs[k].T @ T_ref_base, T_ref_base, res[1])
+        return best
 
     def relative_fix(feats, pose, T_odom, t, T_world_base) -> bool:
         """No metric fix: the pose up to scale against the route's images nearest the predicted pose
@@ -367,10 +438,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         robot is far enough from the image for the direction to tell (the scale from the node's
         points, else from the prediction); both part of the way, by the fix's inliers (noisier than
         a metric fix)."""
-        yaw = yaw_of(pose)
-        near = sorted((float(np.linalg.norm(r.T[:2, 3] - pose[:2, 3])), k) for k, r in enumerate(refs)
-                      if abs(wrap_angle(yaw_of(r.T) - yaw)) < math.radians(50))
-        near = [k for dist, k in near[:4] if dist < 4.0]
+        near = _nearest_refs(refs, pose, n=4)
         # the direction tells the position best from a reference some way off: those first
         far = [k for k in near if np.linalg.norm(refs[k].T[:2, 3] - pose[:2, 3]) >= 0.7]
         rel = None
@@ -427,6 +495,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
     trace = []
     fix_log = []
     relative_log = []
+    tracking_log = []
     loc_seconds = 0.0
     loc_calls = 0
     done = False
@@ -439,55 +508,76 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         v = w = 0.0
         frame_no = 0
         k = 0
+        imu = Gyro(np.random.default_rng([seed, GYRO_STREAM])) if gyro else None
+        dr = DeadReckoning(ep.robot.T_odom_base)
         while k * dt < limit:
             t = k * dt
             T_world_base = ep.robot.T_world_base()
             if k > 0:
+                T_wheels = ep.robot.T_odom_base.copy()
                 ep.robot.update_odometry(dt)
-            T_odom = ep.robot.T_odom_base.copy()
+                if imu is None:
+                    T_odom = ep.robot.T_odom_base.copy()
+                else:  # the wheels' travel, the gyro's heading
+                    step = inv(T_wheels) @ ep.robot.T_odom_base
+                    rate = imu.measure(wrap_angle(yaw_of(T_world_base) - yaw_prev) / dt, dt)
+                    T_odom = dr.step(float(step[0, 3]), float(step[1, 3]), rate * dt)
+            else:
+                T_odom = dr.T.copy()
+            yaw_prev = yaw_of(T_world_base)
             trace.append(T_world_base[:3, 3].copy())
             pose = tracker.predict(T_odom)
             near_end = route is not None and pose is not None and progress >= len(route) - 15
             if k % cam_every == 0:
+                if refs and pose is not None:  # the estimate's error (ground truth, for the report only)
+                    tracking_log.append(_tracking_error(refs, pose, T_world_base, t))
                 if frame_no % (1 if near_end else localise_every) == 0:
                     T_world_cam = T_world_base @ ep.T_base_camera
                     rgb, _, _ = render_rgbd(ep.client, T_world_cam, ep.camera_info, ep.light_at(t), ep.rng_camera,
                                             sc.sensors.noise, ep.renderer)
                     t0 = time.perf_counter()
                     feats = detect_features(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), mono_cfg)
+                    mfix = None
                     if path is None:  # where am I: retrieval over the whole map
                         fix = _first_fix(topo, rgb, tree, rng, mono_cfg, feats)
-                    else:  # the path's nodes nearest the predicted pose, facing the same way
-                        cands = _candidates(path, usable, R, pose, target if near_end else None)
-                        fix = localise(topo, rgb, tree, rng=rng, cfg=mono_cfg, feats=feats, candidates=cands) \
-                            if cands else None
+                        if fix is not None:
+                            node = topo.nodes[fix.node]
+                            T_node_cam = inv(node.T_map_camera) @ fix.T_map_camera
+                            T_node_cam[:3, 3] *= scales.get(node.segment, 1.0)
+                            T_node_base = T_bc @ T_node_cam @ inv(T_bc)
+                            mfix = (RouteImage(node.frame, R[node.id], None, true_node_base[node.id], node=node.id),
+                                    R[node.id] @ T_node_base, T_node_base, fix.inliers)
+                    elif pose is not None:  # the route's images nearest the predicted pose, facing the same way
+                        mfix = metric_fix(feats, pose, near_end)
                     loc_seconds += time.perf_counter() - t0
                     loc_calls += 1
-                    if (fix is None or fix.inliers < MIN_FIX_INLIERS) and path is not None and pose is not None:
+                    if (mfix is None or mfix[3] < MIN_FIX_INLIERS) and path is not None and pose is not None:
                         relative_fix(feats, pose, T_odom, t, T_world_base)
-                    log.debug("t %.1f: candidates %s -> %s; %s", t, None if path is None else cands,
-                              None if fix is None else (fix.node, fix.inliers), relative_log[-1:] if relative_log else "")
-                    if fix is not None and fix.inliers >= MIN_FIX_INLIERS:
-                        T_route_base, T_node_base = fix_in_route(fix)
+                    log.debug("t %.1f: -> %s; %s", t, None if mfix is None else (mfix[0].frame, mfix[3]),
+                              relative_log[-1:] if relative_log else "")
+                    if mfix is not None and mfix[3] >= MIN_FIX_INLIERS:
+                        ref, T_route_base, T_ref_base, inliers = mfix
                         accepted = tracker.correct(T_route_base, T_odom, t)
-                        true_rel = inv(true_node_base[fix.node]) @ T_world_base
-                        fix_log.append({"t": round(t, 2), "node": fix.node, "inliers": fix.inliers, "accepted": accepted,
-                                        "error_m": float(np.linalg.norm(true_rel[:2, 3] - T_node_base[:2, 3]))})
+                        true_rel = inv(ref.T_world) @ T_world_base
+                        fix_log.append({"t": round(t, 2), "node": ref.node, "frame": ref.frame, "inliers": inliers,
+                                        "accepted": accepted,
+                                        "error_m": float(np.linalg.norm(true_rel[:2, 3] - T_ref_base[:2, 3]))})
                         if path is None and accepted:
+                            start = ref.node
                             if target is None:
-                                target = route_target(topo, cls, fix.node, T_odom_node)
+                                target = route_target(topo, cls, start, T_odom_node)
                             report["target_node"] = target
-                            path = None if target is None else topo.shortest_path(fix.node, target, forward_only=True)
+                            path = None if target is None else topo.shortest_path(start, target, forward_only=True)
                             if path is None:
                                 if target is not None:
-                                    report["reason"] = f"no path from node {fix.node} to node {target}"
+                                    report["reason"] = f"no path from node {start} to node {target}"
                                 break
                             R = route_poses(topo, T_odom_node, path, scales)
                             route = teach_route(topo, T_odom_teach, path, R)
-                            refs = route_references(topo, stream, path, R, mono_cfg, scales)
+                            refs = route_references(topo, stream, T_odom_teach, path, R, mono_cfg, scales)
                             progress = 0
                             route_m = float(np.sum(np.linalg.norm(np.diff(route[:, :2], axis=0), axis=1)))
-                            report.update({"start_node": fix.node, "path": path, "route_m": route_m})
+                            report.update({"start_node": start, "path": path, "route_m": route_m})
                             if max_seconds is None:
                                 limit = t + 30.0 + 2.5 * route_m / speed
                 frame_no += 1
@@ -547,7 +637,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
                                     "seconds_per_attempt": loc_seconds / max(1, loc_calls),
                                     "fix_error_m_median": float(np.median([f["error_m"] for f in fix_log]))
                                     if fix_log else None},
-                   "fixes": fix_log, "relative_fixes": relative_log})
+                   "fixes": fix_log, "relative_fixes": relative_log, "tracking": tracking_log})
     if target is None:
         report.update({"success": False, "final_distance_m": None, "distance_to_object_m": None,
                        "reason": "never localised" if not tracker.fixes else f"no node of the map holds {cls}"})
@@ -581,26 +671,26 @@ def _first_fix(topo: TopoMap, rgb, tree, rng, cfg: MonoConfig, feats, k: int = 1
     return None
 
 
-def _candidates(path, usable, R, pose, target=None, n: int = 2) -> list[int]:
-    """The path's nodes (with 3D points) nearest the predicted pose and facing within 50 deg of it;
-    near the end the target node first."""
-    if pose is None:
-        return []
-    ok = set(usable)
+def _tracking_error(refs: list[RouteImage], pose: np.ndarray, T_world_base: np.ndarray, t: float) -> dict:
+    """The pose estimate's error relative to the route image nearest it, in that image's base frame:
+    along (x, forward) and across (y, left) the route, and in heading (ground truth: the report only)."""
+    k = int(np.argmin([np.linalg.norm(r.T[:2, 3] - pose[:2, 3]) for r in refs]))
+    est = inv(refs[k].T) @ pose
+    true = inv(refs[k].T_world) @ T_world_base
+    return {"t": round(t, 2), "frame": refs[k].frame, "along_m": round(float(est[0, 3] - true[0, 3]), 3),
+            "across_m": round(float(est[1, 3] - true[1, 3]), 3),
+            "yaw_deg": round(math.degrees(wrap_angle(yaw_of(est) - yaw_of(true))), 2)}
+
+
+def _nearest_refs(refs: list[RouteImage], pose: np.ndarray, n: int = 2, max_m: float = 4.0,
+                  with_points: bool = False) -> list[int]:
+    """The route images nearest the predicted pose (within ``max_m``) and facing within 50 deg of it;
+    ``with_points``: only those with 3D points."""
     yaw = yaw_of(pose)
-    scored = []
-    for nid in path:
-        if nid not in ok:
-            continue
-        T = R[nid]
-        if abs(wrap_angle(yaw_of(T) - yaw)) > math.radians(50):
-            continue
-        scored.append((float(np.linalg.norm(T[:2, 3] - pose[:2, 3])), nid))
-    scored.sort()
-    out = [nid for d, nid in scored[:n] if d < 4.0]
-    if target is not None and target in ok:
-        out = [target] + [c for c in out if c != target][: n - 1]
-    return out
+    scored = sorted((float(np.linalg.norm(r.T[:2, 3] - pose[:2, 3])), k) for k, r in enumerate(refs)
+                    if abs(wrap_angle(yaw_of(r.T) - yaw)) < math.radians(50) and
+                    (not with_points or (r.points is not None and int(np.isfinite(r.points[:, 0]).sum()) >= 8)))
+    return [k for d, k in scored[:n] if d < max_m]
 
 
 def _plot(path, topo, stream, true_node_base, trace, target, report, obj) -> None:
@@ -628,7 +718,8 @@ def _plot(path, topo, stream, true_node_base, trace, target, report, obj) -> Non
 
 
 def main_args(args) -> int:
-    report = navigate(args.object, args.scenario, args.out, args.seed, args.max_seconds)
+    report = navigate(args.object, args.scenario, args.out, args.seed, args.max_seconds,
+                      gyro=not getattr(args, "wheels_only", False))
     fd = report["final_distance_m"]
     print(json.dumps({k: report[k] for k in ("object", "scenario", "seed", "target_node", "success",
                                              "final_distance_m", "distance_to_object_m", "path_length_m")}, indent=1))
@@ -641,7 +732,7 @@ def _fmt(v) -> str:
 
 
 def batch(scenarios=("experiment3_columns", "shelf_corridor", "office_loop_twice"), seeds=range(10),
-          out_dir="out/seed2/navigate") -> dict:
+          out_dir="out/seed2/navigate", gyro: bool = True) -> dict:
     """Ten seeded navigation runs per scenario, the object asked for cycling through the objects the
     map holds (seed k asks for the k mod n-th; those without a node are listed). Writes
     ``navigate_batch.json``."""
@@ -650,7 +741,7 @@ def batch(scenarios=("experiment3_columns", "shelf_corridor", "office_loop_twice
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tree = load_tree()
-    summary = {"success_m": SUCCESS_M, "scenarios": {}}
+    summary = {"success_m": SUCCESS_M, "dead_reckoning": "wheels+gyro" if gyro else "wheels", "scenarios": {}}
     for name in scenarios:
         topo, stream = scenario_map(name)
         # the objects the map holds (a class the detector never attributed has no node to drive to)
@@ -661,7 +752,7 @@ def batch(scenarios=("experiment3_columns", "shelf_corridor", "office_loop_twice
             if not held:
                 break
             obj = held[seed % len(held)]
-            r = navigate(obj.name, name, out / name / f"seed{seed}", seed, topo=topo, stream=stream, tree=tree)
+            r = navigate(obj.name, name, out / name / f"seed{seed}", seed, topo=topo, stream=stream, tree=tree, gyro=gyro)
             rows.append({k: r.get(k) for k in ("object", "seed", "target_node", "success", "reached", "final_distance_m",
                                                "distance_to_object_m", "target_node_to_object_m",
                                                "target_node_shows_object", "path_length_m", "sim_seconds", "wall_seconds")})
@@ -679,10 +770,11 @@ if __name__ == "__main__":
     ap.add_argument("--scenarios", default="experiment3_columns,shelf_corridor,office_loop_twice")
     ap.add_argument("--seeds", default="0-9")
     ap.add_argument("--out", default="out/seed2/navigate")
+    ap.add_argument("--wheels-only", action="store_true", help="dead reckoning from the wheel odometry alone")
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     lo, _, hi = a.seeds.partition("-")
-    res = batch(a.scenarios.split(","), range(int(lo), int(hi or lo) + 1), a.out)
+    res = batch(a.scenarios.split(","), range(int(lo), int(hi or lo) + 1), a.out, gyro=not a.wheels_only)
     for name, s in res["scenarios"].items():
         print(f"{name}: {s['successes']}/{len(s['runs'])} within {SUCCESS_M} m of the target node")
         for r in s["runs"]:
