@@ -142,7 +142,7 @@ def resolve_object(name: str, objects) -> tuple[str, object]:
 
 
 class PoseTracker:
-    """The robot's pose in the route frame: visual fixes, wheel odometry in between."""
+    """The robot's pose in the route frame: visual fixes, dead reckoning in between."""
 
     def __init__(self):
         self.T_route_base_fix: np.ndarray | None = None
@@ -281,7 +281,7 @@ def route_poses(topo: TopoMap, T_odom_node: dict[int, np.ndarray], path: list[in
 
 def teach_route(topo: TopoMap, T_odom_teach: np.ndarray, path: list[int], R: dict[int, np.ndarray],
                 spacing: float = 0.1) -> np.ndarray:
-    """The route to repeat: the mapping run's wheel-odometry trajectory through the path's nodes
+    """The route to repeat: the mapping run's dead-reckoned trajectory through the path's nodes
     (x, y, yaw in the route frame), one point every ``spacing`` metres."""
     edges = _edges(topo)
     pts = [R[path[0]]]
@@ -383,10 +383,11 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
              localise_every: int = 3, speed: float = 0.5, topo: TopoMap | None = None,
              stream: CameraStream | None = None, tree=None, target_node: int | None = None, gyro: bool = True) -> dict:
     """Teach and repeat over the topological map: the path is planned over the graph, the robot
-    repeats the mapping run's trajectory along it (its wheel odometry between the path's nodes,
-    the route frame) and corrects its pose in that frame with visual fixes against the path's
-    nodes (each fix is relative to a node, so the map's segments need not agree with each other);
-    the last metres converge on the target node's key frame."""
+    repeats the mapping run's trajectory along it (its dead reckoning between the path's nodes,
+    the route frame) and corrects its pose in that frame with visual fixes against the route's
+    images (each fix is relative to one image, so the map's segments need not agree with each
+    other); the last metres converge on the target node's key frame. ``gyro``: dead reckoning
+    with the gyro's heading (else the wheel odometry's)."""
     import pybullet as p
 
     from sim.camera import render_rgbd
@@ -435,7 +436,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
     def relative_fix(feats, pose, T_odom, t, T_world_base) -> bool:
         """No metric fix: the pose up to scale against the route's images nearest the predicted pose
         (essential matrix on all their features). The heading is taken; the position too where the
-        robot is far enough from the image for the direction to tell (the scale from the node's
+        robot is far enough from the image for the direction to tell (the scale from the image's
         points, else from the prediction); both part of the way, by the fix's inliers (noisier than
         a metric fix)."""
         near = _nearest_refs(refs, pose, n=4)
@@ -457,7 +458,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         d = (T_bc[:3, :3] @ c_dir)[:2]
         pred_rel = inv(ref.T) @ pose
         s = max(0.0, float(d @ (pred_rel[:2, 3] - T0[:2, 3])) / max(float(d @ d), 1e-9))
-        if scale and scale[1] >= 5 and 0.0 < scale[0] < 10.0:  # the scale from the node's points
+        if scale and scale[1] >= 5 and 0.0 < scale[0] < 10.0:  # the scale from the image's points
             s = scale[0] * ref.scale
         T_rel = T0.copy()
         T_rel[:2, 3] = T0[:2, 3] + s * d
