@@ -36,7 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stack.mono_pose import Features, MonoConfig, MonoVO, detect_features, grunert, match_features, orpe
+from stack.mono_pose import (Features, MonoConfig, MonoVO, detect_features, grunert, match_features, orpe,
+                             triangulate)
 from stack.transforms import inv
 
 log = logging.getLogger(__name__)
@@ -544,19 +545,12 @@ def add_revisit_edges(topo: TopoMap, tree, k: int = 5, min_gap_nodes: int = 20, 
     return added
 
 
-def relative_pose_up_to_scale(K: np.ndarray, ref: Features, feats: Features, cfg: MonoConfig | None = None,
-                              min_inliers: int = 15, points: np.ndarray | None = None
-                              ) -> tuple[np.ndarray, np.ndarray, int, tuple[float, int] | None] | None:
-    """The pose of the current camera relative to a reference image's (a node's, or any image's
-    features), up to scale: essential matrix in RANSAC on mutual matches of all features, with or
-    without 3D points. For a fix where too few points are matched for a metric pose. ``points``:
-    the reference's 3D points in its camera frame (NaN where none); with them the translation's
-    scale is estimated from each inlier that has a point (ORPE's one-point scale, the median).
-    Returns (R_ref_cur, the current camera's direction from the reference's in the reference
-    camera's frame (unit), inliers, (scale, points used) or None), or None."""
+def _essential_pose(K: np.ndarray, ref: Features, feats: Features, cfg: MonoConfig, min_inliers: int):
+    """The relative pose of two images up to scale: essential matrix in RANSAC (OpenCV) on mutual
+    matches, decomposed with the cheirality check. Returns (the matched reference indices, their
+    pixels in both images, R, unit t with x_cur = R x_ref + t, the inlier mask, inliers) or None."""
     import cv2
 
-    cfg = cfg or MonoConfig()
     i, j = match_global(ref, feats, cfg.max_descriptor_distance)
     if len(i) < min_inliers:
         return None
@@ -569,13 +563,30 @@ def relative_pose_up_to_scale(K: np.ndarray, ref: Features, feats: Features, cfg
     n, R, t, inl = cv2.recoverPose(E, a, b, K, mask=mask.copy())
     if n < min_inliers:
         return None
-    t = t.ravel()
+    return i, a, b, R, t.ravel(), inl.ravel(), int(n)
+
+
+def relative_pose_up_to_scale(K: np.ndarray, ref: Features, feats: Features, cfg: MonoConfig | None = None,
+                              min_inliers: int = 15, points: np.ndarray | None = None
+                              ) -> tuple[np.ndarray, np.ndarray, int, tuple[float, int] | None] | None:
+    """The pose of the current camera relative to a reference image's (a node's, or any image's
+    features), up to scale: essential matrix in RANSAC on mutual matches of all features, with or
+    without 3D points. For a fix where too few points are matched for a metric pose. ``points``:
+    the reference's 3D points in its camera frame (NaN where none); with them the translation's
+    scale is estimated from each inlier that has a point (ORPE's one-point scale, the median).
+    Returns (R_ref_cur, the current camera's direction from the reference's in the reference
+    camera's frame (unit), inliers, (scale, points used) or None), or None."""
+    cfg = cfg or MonoConfig()
+    res = _essential_pose(K, ref, feats, cfg, min_inliers)
+    if res is None:
+        return None
+    i, a, b, R, t, inl, n = res
     scale = None
     if points is not None:
-        keep = (inl.ravel() > 0) & np.isfinite(points[i][:, 0])
+        keep = (inl > 0) & np.isfinite(points[i][:, 0])
         if keep.sum() >= 3:
             P = points[i][keep] @ R.T  # the points rotated into the current camera, before translation
-            xy = (np.c_[b[keep], np.ones(int(keep.sum()))] @ np.linalg.inv(K).T)[:, :2]
+            xy = (np.c_[b[keep], np.ones(int(keep.sum()))] @ np.linalg.inv(np.asarray(K, dtype=np.float64)).T)[:, :2]
             # x (P_z + s t_z) = P_x + s t_x  ->  s (x t_z - t_x) = P_x - x P_z (and the same in y)
             a_x, b_x = xy[:, 0] * t[2] - t[0], P[:, 0] - xy[:, 0] * P[:, 2]
             a_y, b_y = xy[:, 1] * t[2] - t[1], P[:, 1] - xy[:, 1] * P[:, 2]
@@ -593,28 +604,16 @@ def points_from_pair(K: np.ndarray, ref: Features, other: Features, baseline_m: 
     second image of the same place: the relative rotation and translation direction from the
     essential matrix (RANSAC on mutual matches), the translation's length ``baseline_m`` given (the
     wheel odometry between the two images on a straight). None when the pair does not verify."""
-    import cv2
-
-    from stack.mono_pose import triangulate
-
     cfg = cfg or MonoConfig()
     if baseline_m <= 0:
         raise ValueError(f"baseline_m: expected a positive length, got {baseline_m}")
-    i, j = match_global(ref, other, cfg.max_descriptor_distance)
-    if len(i) < min_inliers:
+    res = _essential_pose(K, ref, other, cfg, min_inliers)
+    if res is None:
         return None
-    a = np.ascontiguousarray(ref.uv[i], dtype=np.float64)
-    b = np.ascontiguousarray(other.uv[j], dtype=np.float64)
-    K = np.asarray(K, dtype=np.float64)
-    E, mask = cv2.findEssentialMat(a, b, K, cv2.RANSAC, 0.999, 1.0)
-    if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < min_inliers:
-        return None
-    n, R, t, inl = cv2.recoverPose(E, a, b, K, mask=mask.copy())
-    if n < min_inliers:
-        return None
+    i, a, b, R, t, inl, _ = res
     T2 = np.eye(4)
-    T2[:3, :3], T2[:3, 3] = R, t.ravel() * baseline_m  # x_other = R x_ref + t
-    keep = inl.ravel() > 0
+    T2[:3, :3], T2[:3, 3] = R, t * baseline_m  # x_other = R x_ref + t
+    keep = inl > 0
     X, ok = triangulate(K, np.eye(4), T2, a[keep], b[keep], cfg.min_parallax_deg, cfg.max_depth_m, cfg.inlier_px)
     if ok.sum() < 8:
         return None
