@@ -28,7 +28,7 @@ def measure(seed: int, seconds: float) -> list[dict]:
     from sim.imu import Gyro
     from sim.scenario import load_scenario
     from stack.dead_reckoning import DeadReckoning
-    from stack.transforms import inv, wrap_angle, yaw_of
+    from stack.transforms import wrap_angle, yaw_of
 
     sc = load_scenario("experiment3_columns")
     sc.sensors.lidar = False
@@ -49,8 +49,7 @@ def measure(seed: int, seconds: float) -> list[dict]:
                 d_true = wrap_angle(yw - yaw_w)
                 true += d_true
                 odo += wrap_angle(yo - yaw_o)
-                step = inv(T_prev) @ ep.robot.T_odom_base
-                dr.step(float(step[0, 3]), float(step[1, 3]), gyro.measure(d_true / dt, dt) * dt)
+                dr.step_wheels(T_prev, ep.robot.T_odom_base, gyro.measure(d_true / dt, dt) * dt)
                 yaw_w, yaw_o = yw, yo
             fused = math.degrees(math.atan2(dr.T[1, 0], dr.T[0, 0]))
             rows.append({"v": v, "w_cmd": w, "true_deg": math.degrees(true), "wheels_deg": math.degrees(odo),

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 
+from stack.transforms import inv
+
 
 class DeadReckoning:
     """The pose from the wheels' travel and the gyro's heading (wheel odometry over-counts turns on a
@@ -24,3 +26,9 @@ class DeadReckoning:
         y = yaw + dyaw
         self.T[:2, :2] = [[math.cos(y), -math.sin(y)], [math.sin(y), math.cos(y)]]
         return self.T.copy()
+
+    def step_wheels(self, T_wheels_prev: np.ndarray, T_wheels: np.ndarray, dyaw: float) -> np.ndarray:
+        """Advance by the wheel odometry's travel between two of its poses (4x4, its own frame), over
+        which the gyro turned by ``dyaw``."""
+        step = inv(T_wheels_prev) @ T_wheels
+        return self.step(float(step[0, 3]), float(step[1, 3]), dyaw)

@@ -193,19 +193,16 @@ def teach_odometry(stream: CameraStream) -> np.ndarray:
     from sim.imu import Gyro
 
     gyro = Gyro(np.random.default_rng([stream.seed, GYRO_STREAM]))
-    yaw_true = np.unwrap([yaw_of(T) for T in stream.T_world_base])
-    dts = np.diff(stream.gt_stamps)
-    rates = [gyro.measure(float(dy / dt), float(dt)) for dy, dt in zip(np.diff(yaw_true), dts) if dt > 0]
-    yaw_gyro = np.concatenate([[0.0], np.cumsum(np.asarray(rates) * dts[dts > 0])])
-    stamps = stream.gt_stamps[np.r_[True, dts > 0]]
-    yaw_at = np.interp(stream.stamps, stamps, yaw_gyro)
+    keep = np.r_[True, np.diff(stream.gt_stamps) > 0]  # repeated stamps carry no interval
+    stamps = stream.gt_stamps[keep]
+    yaw_true = np.unwrap([yaw_of(T) for T in stream.T_world_base])[keep]
+    dts = np.diff(stamps)
+    rates = [gyro.measure(float(dy / dt), float(dt)) for dy, dt in zip(np.diff(yaw_true), dts)]
+    yaw_at = np.interp(stream.stamps, stamps, np.r_[0.0, np.cumsum(np.asarray(rates) * dts)])
     To = stream.T_odom_base
     dr = DeadReckoning(To[0])
-    out = [To[0].copy()]
-    for f in range(1, len(To)):
-        step = inv(To[f - 1]) @ To[f]
-        out.append(dr.step(float(step[0, 3]), float(step[1, 3]), float(yaw_at[f] - yaw_at[f - 1])))
-    return np.asarray(out)
+    return np.asarray([To[0].copy()] + [dr.step_wheels(To[f - 1], To[f], float(yaw_at[f] - yaw_at[f - 1]))
+                                         for f in range(1, len(To))])
 
 
 def segment_scales(topo: TopoMap, T_odom_node: dict[int, np.ndarray], min_length_m: float = 2.0) -> dict[int, float]:
@@ -427,9 +424,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
         for k in cands:
             res = pose_against_points(topo.K, refs[k].feats, refs[k].points, feats, rng, mono_cfg)
             if res is not None and (best is None or res[1] > best[3]):
-                T_ref_cam = res[0].copy()
-                T_ref_cam[:3, 3] *= refs[k].scale
-                T_ref_base = T_bc @ T_ref_cam @ inv(T_bc)
+                T_ref_base = _base_relative(res[0], refs[k].scale, T_bc)
                 best = (refs[k], refs[k].T @ T_ref_base, T_ref_base, res[1])
         return best
 
@@ -520,9 +515,8 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
                 if imu is None:
                     T_odom = ep.robot.T_odom_base.copy()
                 else:  # the wheels' travel, the gyro's heading
-                    step = inv(T_wheels) @ ep.robot.T_odom_base
                     rate = imu.measure(wrap_angle(yaw_of(T_world_base) - yaw_prev) / dt, dt)
-                    T_odom = dr.step(float(step[0, 3]), float(step[1, 3]), rate * dt)
+                    T_odom = dr.step_wheels(T_wheels, ep.robot.T_odom_base, rate * dt)
             else:
                 T_odom = dr.T.copy()
             yaw_prev = yaw_of(T_world_base)
@@ -543,9 +537,8 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
                         fix = _first_fix(topo, rgb, tree, rng, mono_cfg, feats)
                         if fix is not None:
                             node = topo.nodes[fix.node]
-                            T_node_cam = inv(node.T_map_camera) @ fix.T_map_camera
-                            T_node_cam[:3, 3] *= scales.get(node.segment, 1.0)
-                            T_node_base = T_bc @ T_node_cam @ inv(T_bc)
+                            T_node_base = _base_relative(inv(node.T_map_camera) @ fix.T_map_camera,
+                                                         scales.get(node.segment, 1.0), T_bc)
                             mfix = (RouteImage(node.frame, R[node.id], None, true_node_base[node.id], node=node.id),
                                     R[node.id] @ T_node_base, T_node_base, fix.inliers)
                     elif pose is not None:  # the route's images nearest the predicted pose, facing the same way
@@ -670,6 +663,14 @@ def _first_fix(topo: TopoMap, rgb, tree, rng, cfg: MonoConfig, feats, k: int = 1
         if fix is not None and fix.inliers >= 20:
             return fix
     return None
+
+
+def _base_relative(T_ref_cam: np.ndarray, scale: float, T_bc: np.ndarray) -> np.ndarray:
+    """A camera pose relative to a reference camera (translation in map units) as the base's pose
+    relative to the reference's base, in metres (``scale``: metres per map unit)."""
+    T = T_ref_cam.copy()
+    T[:3, 3] *= scale
+    return T_bc @ T @ inv(T_bc)
 
 
 def _tracking_error(refs: list[RouteImage], pose: np.ndarray, T_world_base: np.ndarray, t: float) -> dict:
