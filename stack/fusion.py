@@ -82,8 +82,8 @@ def object_in_map(T_cam_obj: np.ndarray, stamp: float, poses: Poses, T_base_cam:
 
 def fuse(detection: Detection, poses: Poses, T_base_cam: np.ndarray) -> Observation:
     """A DOPE detection as a map-frame observation, ready for the object store."""
-    T_map_obj = object_in_map(detection.T_cam_obj, detection.stamp, poses, T_base_cam)
-    return Observation.from_detection(detection, T_map_obj)
+    T_map_cam = as_pose_lookup(poses)(detection.stamp) @ T_base_cam
+    return Observation.from_detection(detection, T_map_cam @ detection.T_cam_obj, T_map_cam)
 
 
 # --- The paper's HTM (section 3.3), the flat-ground yaw-only special case -----------------------

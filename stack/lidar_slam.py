@@ -398,6 +398,15 @@ class LidarOdometry:
     def __len__(self) -> int:
         return len(self._stamps)
 
+    def floor_plane_map(self) -> tuple[np.ndarray, float] | None:
+        """The floor the first scan found, in ``map``: (unit normal n pointing up, d) with n.x + d = 0
+        on the floor, so n.x + d is a point's height above it. None without a floor constraint."""
+        if self._floor is None:
+            return None
+        n0, d0 = self._floor  # the first scan's sensor frame
+        n = self.T_base_velodyne[:3, :3] @ n0
+        return n, float(d0 - n @ self.T_base_velodyne[:3, 3])
+
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps (N,), T_map_base (N, 4, 4)) of every registered scan."""
         return np.array(self._stamps), np.array(self._poses).reshape(-1, 4, 4)

@@ -29,11 +29,13 @@ import pandas as pd
 from openpyxl.utils.exceptions import InvalidFileException
 from scipy.spatial.transform import Rotation
 
+from stack.evidence import CANDIDATE, LABEL, EvidenceConfig, assess
 from stack.messages import Detection
 from stack.transforms import from_xyz_quat, to_xyz_quat
 
 COLUMNS = ["id", "class", "x", "y", "z", "qx", "qy", "qz", "qw", "size_x", "size_y", "size_z",
-           "first_seen", "last_seen", "observations", "score", "edited"]
+           "first_seen", "last_seen", "observations", "score", "edited", "status", "reason"]
+OPTIONAL_COLUMNS = {"status": LABEL, "reason": ""}  # files written before candidates existed: all labels
 SHEET = "objects"
 JSON_FORMAT = "dopeslam-object-store"
 QUAT_NORM_TOLERANCE = 0.01  # hand-typed quaternions (0.707, 0, 0, 0.707) are accepted and normalised
@@ -68,25 +70,31 @@ class Observation:
     belief_sum: float = math.nan  # FPR's quantity: lower = more certain
     fpr_pass: bool = True
     range_m: float = math.nan  # camera-to-object distance when seen
+    cam_xyz: np.ndarray | None = None  # (3,) camera position in the map when seen (the viewpoint)
 
     @staticmethod
-    def from_detection(det: Detection, T_map_obj: np.ndarray) -> "Observation":
+    def from_detection(det: Detection, T_map_obj: np.ndarray, T_map_cam: np.ndarray | None = None) -> "Observation":
         xyz, quat = to_xyz_quat(T_map_obj)
+        cam = None if T_map_cam is None else np.array(T_map_cam[:3, 3], dtype=float)
         return Observation(det.stamp, det.cls, xyz, quat, float(det.belief_sum), bool(det.fpr_pass),
-                           float(np.linalg.norm(det.T_cam_obj[:3, 3])))
+                           float(np.linalg.norm(det.T_cam_obj[:3, 3])), cam)
 
     def to_dict(self) -> dict:
-        return {"stamp": self.stamp, "cls": self.cls, "xyz": [float(v) for v in self.xyz],
-                "quat_xyzw": [float(v) for v in self.quat_xyzw], "belief_sum": _nan_to_none(self.belief_sum),
-                "fpr_pass": self.fpr_pass, "range_m": _nan_to_none(self.range_m)}
+        d = {"stamp": self.stamp, "cls": self.cls, "xyz": [float(v) for v in self.xyz],
+             "quat_xyzw": [float(v) for v in self.quat_xyzw], "belief_sum": _nan_to_none(self.belief_sum),
+             "fpr_pass": self.fpr_pass, "range_m": _nan_to_none(self.range_m)}
+        if self.cam_xyz is not None:
+            d["cam_xyz"] = [float(v) for v in self.cam_xyz]
+        return d
 
     @staticmethod
     def from_dict(d: Mapping) -> "Observation":
         xyz, quat = np.asarray(d["xyz"], dtype=float), np.asarray(d["quat_xyzw"], dtype=float)
-        if xyz.shape != (3,) or quat.shape != (4,):
-            raise ValueError("expected xyz of 3 and quat_xyzw of 4 numbers")
+        cam = None if d.get("cam_xyz") is None else np.asarray(d["cam_xyz"], dtype=float)
+        if xyz.shape != (3,) or quat.shape != (4,) or (cam is not None and cam.shape != (3,)):
+            raise ValueError("expected xyz of 3, quat_xyzw of 4 and cam_xyz (if given) of 3 numbers")
         return Observation(float(d["stamp"]), str(d["cls"]), xyz, quat, _none_to_nan(d.get("belief_sum")),
-                           bool(d.get("fpr_pass", True)), _none_to_nan(d.get("range_m")))
+                           bool(d.get("fpr_pass", True)), _none_to_nan(d.get("range_m")), cam)
 
 
 # --- Labelling policies: observations (time order) -> label, or None when none qualifies ---------
@@ -196,7 +204,13 @@ class MapObject:
     observations: int = 0
     score: float = math.nan
     edited: bool = False  # set by a person: the stack no longer moves it and saves keep it
+    status: str = LABEL  # "label": published on the map; "candidate": kept, not (yet) a label
+    reason: str = ""  # why a candidate is not a label
     history: list[Observation] = field(default_factory=list)
+
+    @property
+    def is_label(self) -> bool:
+        return self.status == LABEL
 
     @property
     def T_map_obj(self) -> np.ndarray:
@@ -205,7 +219,8 @@ class MapObject:
     def row(self) -> dict:
         (x, y, z), (qx, qy, qz, qw), (sx, sy, sz) = self.xyz, self.quat_xyzw, self.size
         values = [self.id, self.cls, x, y, z, qx, qy, qz, qw, sx, sy, sz,
-                  self.first_seen, self.last_seen, self.observations, self.score, self.edited]
+                  self.first_seen, self.last_seen, self.observations, self.score, self.edited, self.status,
+                  self.reason]
         return {c: (v.item() if isinstance(v, np.generic) else v) for c, v in zip(COLUMNS, values)}
 
 
@@ -215,15 +230,43 @@ class ObjectStore:
     ``dims``: cuboid size per class (also the set of known classes). ``gate_m``: the
     furthest an observation may be from an object's label to be that object
     (math.inf = one object per class, as in the paper's one-object runs).
+    ``evidence``: what an object needs to be published as a label (``stack.evidence``);
+    None publishes every object. ``floor``: the floor plane in the map (n, d), from the
+    odometry, for the evidence's floor check. ``publish()`` sets every object's status.
     """
 
     def __init__(self, dims: Mapping[str, Sequence[float]] | None = None, gate_m: float = 0.5,
-                 policy: str = "robust-mean"):
+                 policy: str = "robust-mean", evidence: EvidenceConfig | None = EvidenceConfig()):
         get_policy(policy)
         self.dims = {c: np.asarray(v, dtype=float) for c, v in (dims or {}).items()}
         self.gate_m = float(gate_m)
         self.policy = policy
+        self.evidence = evidence
+        self.floor: tuple[np.ndarray, float] | None = None
         self.objects: dict[int, MapObject] = {}
+
+    def publish(self) -> dict:
+        """Decide each object's status (label or candidate) from its evidence; returns the evidence by id.
+
+        Objects edited by hand keep the status a person gave them, and objects loaded without their
+        observation history (from .xlsx) keep the status they were saved with.
+        """
+        judged = [o for o in self if o.history and not o.edited]
+        if self.evidence is None:
+            for obj in judged:
+                obj.status, obj.reason = LABEL, ""
+            return {}
+        verdicts = assess(judged, self.evidence, self.floor)
+        for obj in judged:
+            obj.status, obj.reason, _ = verdicts[obj.id]
+        return {i: v[2] for i, v in verdicts.items()}
+
+    def labels(self) -> list[MapObject]:
+        """The published labels (call ``publish()`` first for an up-to-date verdict)."""
+        return [o for o in self if o.is_label]
+
+    def candidates(self) -> list[MapObject]:
+        return [o for o in self if not o.is_label]
 
     def __len__(self) -> int:
         return len(self.objects)
@@ -306,8 +349,8 @@ class ObjectStore:
 
     @classmethod
     def load(cls, path, dims: Mapping[str, Sequence[float]] | None = None, gate_m: float = 0.5,
-             policy: str = "robust-mean") -> "ObjectStore":
-        store = cls(dims, gate_m, policy)
+             policy: str = "robust-mean", evidence: EvidenceConfig | None = EvidenceConfig()) -> "ObjectStore":
+        store = cls(dims, gate_m, policy, evidence)
         for obj in read_objects(path, classes=set(store.dims) or None):
             store.objects[obj.id] = obj
         return store
@@ -376,11 +419,11 @@ def _read_xlsx(path: Path, classes: set[str] | None) -> list[MapObject]:
         rows = ws.iter_rows(values_only=True)
         header = [str(h).strip() if h is not None else "" for h in next(rows, ())]
         for c in COLUMNS:
-            if c not in header:
+            if c not in header and c not in OPTIONAL_COLUMNS:
                 raise ObjectStoreError(path, 1, c, f"missing column; the header must hold {COLUMNS}")
             if header.count(c) > 1:
                 raise ObjectStoreError(path, 1, c, "column appears more than once")
-        where = {c: header.index(c) for c in COLUMNS}
+        where = {c: header.index(c) for c in COLUMNS if c in header}
         records = []
         for number, cells in enumerate(rows, start=2):
             cells = list(cells) + [None] * (len(header) - len(cells))
@@ -404,7 +447,7 @@ def _read_json(path: Path, classes: set[str] | None) -> list[MapObject]:
         if not isinstance(item, dict):
             raise ObjectStoreError(path, i, None, "expected an object with the store's columns")
         for c in COLUMNS:
-            if c not in item:
+            if c not in item and c not in OPTIONAL_COLUMNS:
                 raise ObjectStoreError(path, i, c, "missing field")
         records.append((i, item))
     objects = _objects_from_records(path, records, classes)
@@ -469,10 +512,16 @@ def _parse_row(path: Path, row: int, v: Mapping, classes: set[str] | None) -> Ma
     first_seen, last_seen = number("first_seen"), number("last_seen")
     if last_seen < first_seen:
         raise ObjectStoreError(path, row, "last_seen", f"last_seen {last_seen} is before first_seen {first_seen}")
+    status = v.get("status")
+    status = LABEL if _empty(status) else str(status).strip().lower()
+    if status not in (LABEL, CANDIDATE):
+        raise ObjectStoreError(path, row, "status", f"expected {LABEL!r} or {CANDIDATE!r}, got {v.get('status')!r}")
+    reason = v.get("reason")
     return MapObject(
         id=integer("id"), cls=cls, xyz=np.array([number(c) for c in ("x", "y", "z")]), quat_xyzw=quat / norm,
         size=size, first_seen=first_seen, last_seen=last_seen, observations=integer("observations"),
-        score=number("score", allow_empty=True), edited=_flag(path, row, v["edited"]))
+        score=number("score", allow_empty=True), edited=_flag(path, row, v["edited"]), status=status,
+        reason="" if _empty(reason) else str(reason))
 
 
 def _flag(path: Path, row: int, x) -> bool:

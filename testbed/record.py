@@ -250,8 +250,9 @@ def voxel_thin(points: np.ndarray, voxel_m: float = MAP_VOXEL_M) -> np.ndarray:
 
 
 def store_cuboids(store) -> list[Cuboid]:
-    """The object store's labels as cuboids in ``map`` (name ``<class>_<id>``)."""
-    return [Cuboid(f"{m.cls}_{m.id}", m.cls, m.T_map_obj, np.asarray(m.size, dtype=float)) for m in store]
+    """The object store's published labels as cuboids in ``map`` (name ``<class>_<id>``); candidates
+    are not labels and are left out."""
+    return [Cuboid(f"{m.cls}_{m.id}", m.cls, m.T_map_obj, np.asarray(m.size, dtype=float)) for m in store.labels()]
 
 
 def write_results_bag(path: Path | str, store, map_points: Iterable[np.ndarray] | np.ndarray | None,

@@ -37,7 +37,8 @@ from stack.transforms import transform_points
 from testbed.bags import BagReader, MissingTopicError
 from testbed.bags import topics as T
 from testbed.record import RESULTS_BAG_NAME, image_truth_from_json, write_results_bag
-from testbed.run import DetectionLog, _map_png, score_detections, score_labels, score_trajectory
+from testbed.run import DetectionLog, _map_png, candidate_rows, score_detections, score_labels, score_trajectory
+from testbed.scoring import summary_line
 from testbed.simulate import write_json
 
 log = logging.getLogger(__name__)
@@ -288,6 +289,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         store = ObjectStore(dims=dims, policy=policy)
         T_base_cam = bag.T_base_camera
         observations, unposed = fuse_into_store(det.detections, lookup, T_base_cam, store)
+        store.floor = odo.odom.floor_plane_map()
+        store.publish()
         fusion_s = time.perf_counter() - t0
 
         wheel = WheelOdometryTrack()
@@ -342,10 +345,13 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         if gt is not None and gt.objects:
             labels, labels_summary = score_labels(store, gt.objects, T_world_map)
             report["labels"], report["labels_summary"] = labels, labels_summary
+            report["candidates"] = candidate_rows(store, T_world_map)
         else:
             report["labels"] = [{"id": m.id, "class": m.cls, "label_xyz_map": [float(v) for v in m.xyz],
-                                 "observations": m.observations} for m in store]
-            report["labels_summary"] = {"map_objects": len(store)}
+                                 "observations": m.observations, "status": m.status, "reason": m.reason}
+                                for m in store]
+            report["labels_summary"] = {"map_objects": len(store), "labels_in_map": len(store.labels()),
+                                        "candidates": len(store.candidates())}
 
         if write_outputs:
             out.mkdir(parents=True, exist_ok=True)
@@ -396,12 +402,17 @@ def _map_png_untruthed(path, poses, map_points, store, report, T_world_map=None)
         ax.scatter(pts[:, 0], pts[:, 1], s=0.2, c="0.55", label="LiDAR map")
     est = (T @ poses)[:, :2, 3]
     ax.plot(est[:, 0], est[:, 1], "b--", lw=1, label="LiDAR odometry")
-    for m in store:
+    for m in store.labels():
         x, y = transform_points(T, m.xyz[None])[0, :2]
         ax.plot(x, y, "x", color="tab:blue", ms=7, mew=2)
         ax.annotate(f"{m.cls} {m.id}", (x, y), xytext=(5, 5), textcoords="offset points", fontsize=7)
+    for m in store.candidates():
+        x, y = transform_points(T, m.xyz[None])[0, :2]
+        ax.plot(x, y, ".", color="0.6", ms=4)
     ax.plot([], [], "x", color="tab:blue", label="label")
-    ax.set_title(f"{report['scenario']}: {len(store)} objects labelled (no ground truth in the bag)")
+    ax.plot([], [], ".", color="0.6", label="candidate (not published)")
+    ax.set_title(f"{report['scenario']}: {len(store.labels())} labels, {len(store.candidates())} candidates "
+                 "(no ground truth in the bag)")
     ax.set_aspect("equal")
     ax.legend(loc="lower left", fontsize=7)
     ax.set_xlabel(f"x (m, {frame})")
@@ -426,12 +437,10 @@ def print_replay_summary(report: dict) -> None:
     print(f"detection: {d['predictions']} predictions in {d['frames']} frames"
           + ("" if "precision" in d else " (no per-image ground truth: not scored)"))
     if "mean_error_m" in report["labels_summary"]:
-        s = report["labels_summary"]
-        me = s["mean_error_m"]
-        print(f"labelled {s['labelled']}/{s['objects']}, false labels {s['false_labels']}, missing {s['missing']}, "
-              f"mean error {'-' if me is None else f'{100 * me:.1f} cm'}")
+        print(summary_line(report["labels_summary"]))
     else:
-        print(f"{'id':>3} {'class':<12} {'x':>7} {'y':>7} {'z':>7}  (map frame, not scored)")
+        print(f"{'id':>3} {'class':<12} {'x':>7} {'y':>7} {'z':>7}  status (map frame, not scored)")
         for r in report["labels"]:
             x, y, z = r["label_xyz_map"]
-            print(f"{r['id']:>3} {r['class']:<12} {x:7.2f} {y:7.2f} {z:7.2f}")
+            print(f"{r['id']:>3} {r['class']:<12} {x:7.2f} {y:7.2f} {z:7.2f}  {r['status']}"
+                  + (f" ({r['reason']})" if r["reason"] else ""))

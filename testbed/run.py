@@ -20,11 +20,11 @@ from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
 from stack.metrics import ate_rmse, ate_rmse_umeyama, rpe, write_tum
 from stack.object_store import ObjectStore
 from stack.transforms import inv, transform_points
+from testbed.scoring import FALSE_LABEL_M, score_map, summary_line  # noqa: F401 (FALSE_LABEL_M re-exported)
 from testbed.simulate import write_json
 
 log = logging.getLogger(__name__)
 
-FALSE_LABEL_M = 0.25  # a label further than this from its object's truth is a false label
 FALSE_POSITIVE_M = 0.05  # a detection off by more than this in any axis (camera frame) is a false positive (paper)
 INSTANCE_RANGE_M = (0.3, 1.5)  # an object counts as an instance to detect when this near ...
 INSTANCE_VISIBLE = 0.5  # ... and at least this much of it is visible
@@ -80,38 +80,16 @@ def score_detections(dlog: DetectionLog, detections: list[Detection], truths: li
 
 
 def score_labels(store: ObjectStore, objects, T_world_map: np.ndarray) -> tuple[list[dict], dict]:
-    """Match each true object to the store's nearest label of its class (in world)."""
-    labels = []
-    used = set()
-    for obj in objects:
-        truth = obj.T_world_obj[:3, 3]
-        best, best_d = None, np.inf
-        for m in store:
-            if m.cls != obj.cls or m.id in used:
-                continue
-            d = float(np.linalg.norm(transform_points(T_world_map, m.xyz[None])[0] - truth))
-            if d < best_d:
-                best, best_d = m, d
-        row = {"object": obj.name, "class": obj.cls, "truth_xyz": [float(v) for v in truth]}
-        if best is None:
-            row.update({"id": None, "label_xyz": None, "error_m": None, "false_label": None, "missing": True})
-        else:
-            used.add(best.id)
-            xyz = transform_points(T_world_map, best.xyz[None])[0]
-            d = xyz - truth
-            row.update({"id": best.id, "label_xyz": [float(v) for v in xyz], "error_m": best_d,
-                        "dx_m": float(d[0]), "dy_m": float(d[1]), "dz_m": float(d[2]),
-                        "false_label": bool(best_d > FALSE_LABEL_M), "missing": False,
-                        "observations": best.observations})
-        labels.append(row)
-    errs = [r["error_m"] for r in labels if r["error_m"] is not None]
-    extra = [m.id for m in store if m.id not in used]
-    summary = {"objects": len(objects), "labelled": len(errs),
-               "mean_error_m": float(np.mean(errs)) if errs else None,
-               "false_labels": int(sum(bool(r["false_label"]) for r in labels if not r["missing"])),
-               "missing": int(sum(r["missing"] for r in labels)),
-               "unmatched_map_objects": len(extra), "false_label_threshold_m": FALSE_LABEL_M}
-    return labels, summary
+    """The whole map scored (``testbed.scoring``): per object rows; the summary also holds the
+    per-label rows under ``map_labels``."""
+    rows, map_rows, summary = score_map(store.labels(), objects, T_world_map, len(store.candidates()))
+    return rows, {**summary, "map_labels": map_rows}
+
+
+def candidate_rows(store: ObjectStore, T_world_map: np.ndarray) -> list[dict]:
+    """The objects the stack kept but did not publish, in world, with the reason."""
+    return [{"id": m.id, "class": m.cls, "xyz": [float(v) for v in transform_points(T_world_map, m.xyz[None])[0]],
+             "observations": m.observations, "reason": m.reason} for m in store.candidates()]
 
 
 def score_trajectory(stamps, T_map_base, ep, T_world_map) -> dict:
@@ -245,6 +223,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         ws, wp = wheel.trajectory()
         T_world_odom0 = ep.T_world_base_at(ws[0])
         wheel_score = score_trajectory(ws, wp, ep, T_world_odom0)
+        store.floor = odom.floor_plane_map()
+        store.publish()
         labels, labels_summary = score_labels(store, ep.objects, T_world_map)
         report = {
             "scenario": ep.sc.name, "seed": ep.seed, "light": ep.light, "input": input_mode, "stages": stages,
@@ -252,6 +232,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,
             "odometry": odo, "wheel_odometry": wheel_score, "detection": dlog.summary(),
             "labels": labels, "labels_summary": labels_summary,
+            "candidates": candidate_rows(store, T_world_map),
+            "map_floor": None if store.floor is None else {"normal": [float(v) for v in store.floor[0]],
+                                                           "d_m": store.floor[1]},
         }
         if write_outputs:
             write_json(out / "report.json", report)
@@ -289,18 +272,25 @@ def _map_png(path, ep, T_world_map, poses, map_points, labels, report) -> None:
         tx, ty = row["truth_xyz"][:2]
         ax.plot(tx, ty, "ko", ms=5)
         ax.annotate(row["object"], (tx, ty), xytext=(5, 5), textcoords="offset points", fontsize=7)
-        if row["label_xyz"] is not None:
-            lx, ly = row["label_xyz"][:2]
-            color = "red" if row["false_label"] else "tab:blue"
-            ax.plot(lx, ly, "x", color=color, ms=7, mew=2)
-            ax.add_patch(plt.Circle((tx, ty), row["error_m"], fill=False, color=color, lw=0.8))
-    ax.plot([], [], "ko", label="object truth")
-    ax.plot([], [], "x", color="tab:blue", label="label")
-    ax.plot([], [], "x", color="red", label="false label")
     s = report["labels_summary"]
+    colors = {"correct": "tab:blue", "misplaced": "red", "phantom": "magenta"}
+    for m in s.get("map_labels", []):
+        lx, ly = m["label_xyz"][:2]
+        ax.plot(lx, ly, "x", color=colors[m["verdict"]], ms=7, mew=2)
+        if m["verdict"] != "correct":
+            ax.annotate(f"{m['class']} ({m['verdict']})", (lx, ly), xytext=(5, -9), textcoords="offset points",
+                        fontsize=6, color=colors[m["verdict"]])
+    for c in report.get("candidates", []):
+        ax.plot(c["xyz"][0], c["xyz"][1], ".", color="0.6", ms=4)
+    ax.plot([], [], "ko", label="object truth")
+    for verdict, color in colors.items():
+        ax.plot([], [], "x", color=color, label=f"label: {verdict}" if verdict == "correct" else f"false label: {verdict}")
+    ax.plot([], [], ".", color="0.6", label="candidate (not published)")
+    prec = "-" if s["map_precision"] is None else f"{100 * s['map_precision']:.0f} %"
     err = s["mean_error_m"]
-    ax.set_title(f"{report['scenario']} seed {report['seed']}: {s['labelled']}/{s['objects']} labelled, "
-                 f"{s['false_labels']} false, mean error {'-' if err is None else f'{100 * err:.1f} cm'}")
+    ax.set_title(f"{report['scenario']} seed {report['seed']}: {s['labels_in_map']} labels, {s['correct_labels']} correct, "
+                 f"{s['false_labels']} false (precision {prec}); {s['correct_labels']}/{s['objects']} objects, "
+                 f"mean error {'-' if err is None else f'{100 * err:.1f} cm'}", fontsize=9)
     ax.set_aspect("equal")
     ax.legend(loc="lower left", fontsize=7)
     ax.set_xlabel("x (m, world)")
@@ -319,9 +309,13 @@ def print_summary(report: dict) -> None:
     for r in report["labels"]:
         err = "-" if r["error_m"] is None else f"{100 * r['error_m']:.1f}"
         print(f"{r['object']:<12} {str(r['id'] or '-'):>3} {err:>9} {str(r['false_label'] if not r['missing'] else 'missing'):>6}")
-    me = s["mean_error_m"]
-    print(f"labelled {s['labelled']}/{s['objects']}, false labels {s['false_labels']}, missing {s['missing']}, "
-          f"mean error {'-' if me is None else f'{100 * me:.1f} cm'}")
+    for m in s["map_labels"]:
+        if m["verdict"] != "correct":
+            near = m.get("nearest_object_m")
+            where = f"{100 * m['error_m']:.1f} cm from {m['object']}" if m["object"] else \
+                f"no {m['class']} there (nearest object {'-' if near is None else f'{100 * near:.0f} cm'})"
+            print(f"false label: {m['class']} #{m['id']} ({m['verdict']}, {where}, {m['observations']} observations)")
+    print(summary_line(s))
     prec = "-" if d["precision"] is None else f"{100 * d['precision']:.1f}%"
     rec = "-" if d["recall"] is None else f"{100 * d['recall']:.1f}%"
     fps = "-" if d["fps"] is None else f"{d['fps']:.1f}"

@@ -1,0 +1,139 @@
+"""Which map objects are published as labels, and which stay candidates.
+
+Every detection that reaches the map starts or feeds a map object, but a label is a claim to the
+map's user that an object of that class is there. A false label costs more than a missing one (the
+paper's point: "only the best object labels end up on the map"), so an object is published only on
+consistent evidence, judged with what the robot itself knows:
+
+- **enough evidence**: FPR-passing observations, over a time span and from more than one viewpoint
+  (one view can repeat the same mistake in every frame; a real object stays put as the camera moves);
+- **physically possible**: its cuboid does not reach below the floor plane that the LiDAR odometry
+  fits, and the observations it rests on were taken within the camera's range;
+- **one object per place**: map objects of different classes whose labels lie closer than two real
+  objects can stand are one physical object seen as several classes (the depth network's typical
+  error is a wrong class on a right object); the class with the most evidence there wins the vote.
+
+Everything else stays in the store as a candidate, saved with its reason (the ``status`` and
+``reason`` columns), so a person or a policy can look at it, but it is not a label.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
+
+LABEL = "label"
+CANDIDATE = "candidate"
+
+
+class EvidenceConfig(BaseModel):
+    """What a map object needs before it is published as a label."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    min_observations: int = Field(5, ge=1, description="FPR-passing observations within range")
+    min_span_s: float = Field(1.0, ge=0, description="time between the first and last of them")
+    min_view_angle_deg: float = Field(3.0, ge=0, description="largest angle between two of their viewing rays")
+    floor_tolerance_m: float = Field(0.04, ge=0, description="how far the cuboid may reach below the floor")
+    max_range_m: float = Field(10.0, gt=0, description="observations from further away are no evidence (D435i)")
+    vote_radius_m: float = Field(0.12, ge=0, description="labels of different classes this near are one object")
+
+
+@dataclass
+class Evidence:
+    """What one map object rests on (from its FPR-passing observations within range)."""
+
+    observations: int
+    span_s: float
+    view_angle_deg: float  # nan when no observation carries its viewpoint
+    floor_height_m: float  # height of the cuboid's lowest corner above the floor; nan without a floor
+
+    def as_dict(self) -> dict:
+        return {"support": self.observations, "span_s": self.span_s, "view_angle_deg": self.view_angle_deg,
+                "floor_height_m": self.floor_height_m}
+
+
+def evidence_of(obj, config: EvidenceConfig, floor: tuple[np.ndarray, float] | None) -> Evidence:
+    """``obj``: a ``MapObject`` (label pose, size and observation history)."""
+    obs = [o for o in obj.history if o.fpr_pass and not (o.range_m > config.max_range_m)]
+    stamps = [o.stamp for o in obs]
+    span = float(max(stamps) - min(stamps)) if stamps else 0.0
+    return Evidence(len(obs), span, view_angle_deg(obj.xyz, [o.cam_xyz for o in obs if o.cam_xyz is not None]),
+                    lowest_corner_height(obj.xyz, obj.quat_xyzw, obj.size, floor))
+
+
+def view_angle_deg(xyz, cam_positions: Sequence[np.ndarray]) -> float:
+    """The largest angle (deg) between two viewing rays from the cameras to ``xyz``."""
+    if not cam_positions:
+        return math.nan
+    rays = np.asarray(xyz, dtype=float) - np.asarray(cam_positions, dtype=float)
+    norms = np.linalg.norm(rays, axis=1)
+    rays = rays[norms > 1e-9] / norms[norms > 1e-9, None]
+    if len(rays) < 2:
+        return 0.0
+    # The widest pair includes a ray at an extreme of the spread: test against the mean direction's
+    # furthest ray, then the furthest from that one (exact for rays within a half-space, which views are).
+    mean = rays.mean(axis=0)
+    a = rays[np.argmin(rays @ mean)]
+    b = rays[np.argmin(rays @ a)]
+    return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
+
+
+def lowest_corner_height(xyz, quat_xyzw, size, floor: tuple[np.ndarray, float] | None) -> float:
+    """Height above the floor plane (n, d; n.x + d = height) of the cuboid's lowest corner."""
+    if floor is None:
+        return math.nan
+    n, d = floor
+    R = Rotation.from_quat(np.asarray(quat_xyzw, dtype=float)).as_matrix()
+    half_extent = 0.5 * float(np.abs(R.T @ n) @ np.asarray(size, dtype=float))
+    return float(n @ np.asarray(xyz, dtype=float) + d - half_extent)
+
+
+def assess(objects: Sequence, config: EvidenceConfig, floor: tuple[np.ndarray, float] | None
+           ) -> dict[int, tuple[str, str, Evidence]]:
+    """Per object id: (status, reason, evidence), judged from each object's observation history."""
+    result: dict[int, tuple[str, str, Evidence]] = {}
+    contenders = []
+    for obj in objects:
+        ev = evidence_of(obj, config, floor)
+        reason = _too_weak(ev, config)
+        result[obj.id] = (CANDIDATE, reason, ev) if reason else (LABEL, "", ev)
+        if ev.observations:
+            contenders.append(obj)
+    _vote(contenders, result, config)
+    return result
+
+
+def _too_weak(ev: Evidence, config: EvidenceConfig) -> str:
+    if ev.observations < config.min_observations:
+        return f"{ev.observations} observations (needs {config.min_observations})"
+    if ev.span_s < config.min_span_s:
+        return f"seen over {ev.span_s:.2f} s (needs {config.min_span_s:g} s)"
+    if not math.isnan(ev.view_angle_deg) and ev.view_angle_deg < config.min_view_angle_deg:
+        return f"seen from one viewpoint ({ev.view_angle_deg:.1f} deg, needs {config.min_view_angle_deg:g} deg)"
+    if ev.floor_height_m < -config.floor_tolerance_m:
+        return f"reaches {-100 * ev.floor_height_m:.0f} cm below the floor"
+    return ""
+
+
+def _vote(objects: Sequence, result: dict, config: EvidenceConfig) -> None:
+    """Objects of different classes at one place: the most supported wins; the others become candidates.
+
+    Every object with evidence takes part (a candidate's observations still say what is there), and
+    the strongest claims are settled first, so a weak object never knocks out a strong one.
+    """
+    order = sorted(objects, key=lambda o: (-result[o.id][2].observations, o.id))
+    winners: list = []
+    for obj in order:
+        beaten_by = next((w for w in winners if w.cls != obj.cls
+                          and np.linalg.norm(np.asarray(w.xyz) - np.asarray(obj.xyz)) < config.vote_radius_m), None)
+        if beaten_by is None:
+            winners.append(obj)
+        elif result[obj.id][0] == LABEL:
+            ev = result[obj.id][2]
+            result[obj.id] = (CANDIDATE, f"outvoted at its place by {beaten_by.cls} #{beaten_by.id} "
+                                         f"({result[beaten_by.id][2].observations} vs {ev.observations})", ev)
