@@ -325,7 +325,7 @@ class ObjectStore:
         writer = _writer(path)
         if path.exists() and not overwrite:
             self.keep_edited(read_objects(path, classes=set(self.dims) or None))
-        writer(path, list(self))
+        writer(path, list(self), self.floor)
 
     def keep_edited(self, objects: Sequence[MapObject]) -> None:
         """Take hand-edited objects in as they are, replacing what the store has for them.
@@ -353,6 +353,8 @@ class ObjectStore:
         store = cls(dims, gate_m, policy, evidence)
         for obj in read_objects(path, classes=set(store.dims) or None):
             store.objects[obj.id] = obj
+        if Path(path).suffix.lower() == ".json":
+            store.floor = _read_floor(Path(path))
         return store
 
 
@@ -394,15 +396,17 @@ def _atomic(path: Path):
         raise
 
 
-def _write_xlsx(path: Path, objects: Sequence[MapObject]) -> None:
+def _write_xlsx(path: Path, objects: Sequence[MapObject], floor=None) -> None:
     table = pd.DataFrame([o.row() for o in objects], columns=COLUMNS)
     with _atomic(path) as tmp, open(tmp, "wb") as f:  # our handle: closed even if pandas fails midway
         with pd.ExcelWriter(f, engine="openpyxl") as writer:
             table.to_excel(writer, sheet_name=SHEET, index=False)
 
 
-def _write_json(path: Path, objects: Sequence[MapObject]) -> None:
-    doc = {"format": JSON_FORMAT, "version": 1, "objects": [
+def _write_json(path: Path, objects: Sequence[MapObject], floor=None) -> None:
+    doc = {"format": JSON_FORMAT, "version": 1,
+           "floor": None if floor is None else {"normal": [float(v) for v in floor[0]], "d_m": float(floor[1])},
+           "objects": [
         {**{c: _nan_to_none(v) for c, v in o.row().items()}, "history": [h.to_dict() for h in o.history]}
         for o in objects]}
     with _atomic(path) as tmp:
@@ -433,6 +437,20 @@ def _read_xlsx(path: Path, classes: set[str] | None) -> list[MapObject]:
     finally:
         wb.close()
     return _objects_from_records(path, records, classes)
+
+
+def _read_floor(path: Path) -> tuple[np.ndarray, float] | None:
+    """The floor plane a .json store was saved with (n, d in map), or None."""
+    floor = json.loads(path.read_text()).get("floor")
+    if floor is None:
+        return None
+    try:
+        n, d = np.asarray(floor["normal"], dtype=float), float(floor["d_m"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ObjectStoreError(path, None, "floor", f"expected {{'normal': [x, y, z], 'd_m': d}} ({e})") from e
+    if n.shape != (3,) or not np.all(np.isfinite(n)) or not math.isfinite(d) or abs(np.linalg.norm(n) - 1) > 1e-3:
+        raise ObjectStoreError(path, None, "floor", f"expected a unit normal of 3 numbers and a finite d_m, got {floor}")
+    return n, d
 
 
 def _read_json(path: Path, classes: set[str] | None) -> list[MapObject]:

@@ -29,7 +29,8 @@ def run(out_dir, scenario=None, seed=None, levels=LEVELS, inputs=("rgb", "depth"
                               policy, duration)
             s = rep["labels_summary"]
             rows.append({"input": input_mode, "light": light, "labelled": s["labelled"], "objects": s["objects"],
-                         "false_labels": s["false_labels"], "mean_error_m": s["mean_error_m"],
+                         "labels_in_map": s["labels_in_map"], "false_labels": s["false_labels"],
+                         "map_precision": s["map_precision"], "mean_error_m": s["mean_error_m"],
                          "precision": rep["detection"]["precision"], "recall": rep["detection"]["recall"]})
     result = {"scenario": rep["scenario"], "seed": rep["seed"], "stages": stages, "policy": policy, "rows": rows}
     write_json(out / "darkness.json", result)
@@ -59,8 +60,10 @@ def plot(result, path) -> None:
 
 
 def table(result) -> str:
-    lines = [f"{'input':<6} {'light':>5} {'labelled':>9} {'false':>6} {'mean err cm':>12}"]
+    lines = [f"{'input':<6} {'light':>5} {'labelled':>9} {'labels':>7} {'false':>6} {'precision':>10} {'mean err cm':>12}"]
     for r in result["rows"]:
         err = "-" if r["mean_error_m"] is None else f"{100 * r['mean_error_m']:.1f}"
-        lines.append(f"{r['input']:<6} {r['light']:>5.2f} {r['labelled']:>5}/{r['objects']} {r['false_labels']:>6} {err:>12}")
+        prec = "-" if r["map_precision"] is None else f"{100 * r['map_precision']:.0f} %"
+        lines.append(f"{r['input']:<6} {r['light']:>5.2f} {r['labelled']:>5}/{r['objects']} {r['labels_in_map']:>7} "
+                     f"{r['false_labels']:>6} {prec:>10} {err:>12}")
     return "\n".join(lines)
