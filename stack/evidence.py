@@ -41,6 +41,7 @@ class EvidenceConfig(BaseModel):
     floor_tolerance_m: float = Field(0.04, ge=0, description="how far the cuboid may reach below the floor")
     max_range_m: float = Field(10.0, gt=0, description="observations from further away are no evidence (D435i)")
     vote_radius_m: float = Field(0.12, ge=0, description="labels of different classes this near are one object")
+    vote_share: float = Field(0.5, ge=0, le=1, description="the winning class's share of the evidence at its place")
 
 
 @dataclass
@@ -122,18 +123,31 @@ def _too_weak(ev: Evidence, config: EvidenceConfig) -> str:
 
 def _vote(objects: Sequence, result: dict, config: EvidenceConfig) -> None:
     """Objects of different classes at one place: the most supported wins; the others become candidates.
+    A winner without ``vote_share`` of the place's evidence is a candidate too: the classes disagree
+    there, and a label would be a guess.
 
     Every object with evidence takes part (a candidate's observations still say what is there), and
     the strongest claims are settled first, so a weak object never knocks out a strong one.
     """
-    order = sorted(objects, key=lambda o: (-result[o.id][2].observations, o.id))
+    def support(o) -> int:
+        return result[o.id][2].observations
+
+    def near(a, b) -> bool:
+        return a.cls != b.cls and np.linalg.norm(np.asarray(a.xyz) - np.asarray(b.xyz)) < config.vote_radius_m
+
+    order = sorted(objects, key=lambda o: (-support(o), o.id))
     winners: list = []
     for obj in order:
-        beaten_by = next((w for w in winners if w.cls != obj.cls
-                          and np.linalg.norm(np.asarray(w.xyz) - np.asarray(obj.xyz)) < config.vote_radius_m), None)
+        beaten_by = next((w for w in winners if near(w, obj)), None)
         if beaten_by is None:
             winners.append(obj)
         elif result[obj.id][0] == LABEL:
             ev = result[obj.id][2]
             result[obj.id] = (CANDIDATE, f"outvoted at its place by {beaten_by.cls} #{beaten_by.id} "
-                                         f"({result[beaten_by.id][2].observations} vs {ev.observations})", ev)
+                                         f"({support(beaten_by)} vs {ev.observations})", ev)
+    for w in winners:
+        total = support(w) + sum(support(o) for o in objects if near(w, o))
+        if result[w.id][0] == LABEL and support(w) < config.vote_share * total:
+            ev = result[w.id][2]
+            result[w.id] = (CANDIDATE, f"classes disagree at its place ({support(w)} of {total} observations "
+                                       f"are {w.cls}; needs {config.vote_share:.0%})", ev)
