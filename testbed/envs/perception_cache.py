@@ -11,7 +11,9 @@ a hash of those fields (:class:`PerceptionSpec`):
 - ``<stem>.json``        the spec it was built for, the objects' ground truth, camera, timings
 - ``<stem>.npz``         per camera frame: stamp, estimated and true base pose; per detection:
                          frame, stage count, class, map-frame pose, belief sum, FPR verdict, range,
-                         key points; the odometry trajectory and a thinned LiDAR map for rendering
+                         key points, the camera's position in the map (the viewpoint); the odometry
+                         trajectory, ``T_base_cam``, the floor plane the odometry fitted (``floor_plane``:
+                         n x, n y, n z, d in map, NaN without one) and a thinned LiDAR map for rendering
 - ``<stem>.thumbs.npz``  a small JPEG per frame (the camera image, or the depth image for depth
                          input), read only when rendering
 
@@ -47,7 +49,7 @@ from stack.transforms import interpolate_trajectory, inv, transform_points
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: per-detection camera position, T_base_cam, the odometry's floor plane
 FPR_RULE_VERSION = 2  # 1: belief sum + depth check; 2: + colour check, recalibrated fall-back
 ENV_CACHE_DIR = "DOPESLAM_CACHE"
 DEFAULT_THUMB = (160, 120)
@@ -143,14 +145,14 @@ class FusedFrame:
     stamp: float
     T_map_base: np.ndarray | None  # estimated pose at the image's time (None before any scan)
     T_world_base: np.ndarray  # ground truth at the image's time
-    detections: dict  # stage count -> dict of arrays (cls, xyz, quat, belief, fpr, range, kp)
+    detections: dict  # stage count -> dict of arrays (cls, xyz, quat, belief, fpr, range, kp, cam)
     image: np.ndarray | None  # what the detector looked at, for rendering (RGB uint8, or depth colourised)
     detect_seconds: float
 
 
 DET_FIELDS = {"cls": (np.int16, ()), "xyz": (np.float64, (3,)), "quat": (np.float64, (4,)),
               "belief": (np.float64, ()), "fpr": (np.bool_, ()), "range": (np.float64, ()),
-              "kp": (np.float32, (9, 2))}
+              "kp": (np.float32, (9, 2)), "cam": (np.float64, (3,))}
 
 
 def _empty_dets() -> dict:
@@ -220,7 +222,7 @@ class LivePerception:
                 obs = fuse(det, self.odom.pose_at, self.T_base_cam)
                 kp = np.asarray(det.keypoints_px, dtype=np.float32).reshape(9, 2)
                 rows.append((self.class_index[det.cls], obs.xyz, obs.quat_xyzw, obs.belief_sum, obs.fpr_pass,
-                             obs.range_m, kp))
+                             obs.range_m, kp, obs.cam_xyz))
             arrs = _empty_dets()
             if rows:
                 for k, col in zip(DET_FIELDS, zip(*rows)):
@@ -409,6 +411,8 @@ def build(spec: PerceptionSpec, detector_factory: DetectorFactory, folder=None, 
         "traj_stamp": traj_stamp, "traj_T_map_base": traj_T,
         "map_xy": np.concatenate(live.map_points) if live.map_points else np.zeros((0, 2), np.float32),
         "T_world_map": T_world_map,
+        "T_base_cam": np.asarray(live.T_base_cam, dtype=np.float64),
+        "floor_plane": floor_array(live.odom.floor_plane_map()),
     }
     meta = {
         "format": "dopeslam-perception", "spec": spec.to_dict(), "key": spec.key(), "classes": classes,
@@ -517,6 +521,22 @@ def measure_stage_seconds(detector, frame: CameraFrame, stages: tuple, repeats: 
             best = min(best, time.perf_counter() - t0)
         out[str(s)] = best
     return out
+
+
+def floor_array(floor) -> np.ndarray:
+    """(n x, n y, n z, d) of a floor plane (n, d) in map (n.x + d = height above it); NaN for None."""
+    if floor is None:
+        return np.full(4, np.nan)
+    n, d = floor
+    return np.array([*np.asarray(n, dtype=float).reshape(3), float(d)])
+
+
+def floor_of(perception: "Perception") -> tuple[np.ndarray, float] | None:
+    """The floor plane (n, d) in map a cached episode's odometry fitted, or None."""
+    a = perception.arrays.get("floor_plane")
+    if a is None or not np.all(np.isfinite(a)):
+        return None
+    return np.asarray(a[:3], dtype=float), float(a[3])
 
 
 def finite(x: float) -> float | None:
