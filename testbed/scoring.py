@@ -106,3 +106,58 @@ def summary_line(s: dict) -> str:
 
 def _nearest(p: np.ndarray, truth: np.ndarray) -> float | None:
     return float(np.min(np.linalg.norm(truth - p, axis=1))) if len(truth) else None
+
+
+class RunDirError(ValueError):
+    """A run folder that cannot be scored again (names the file and what is wrong)."""
+
+
+def rescore_run(run_dir, evidence=None) -> dict:
+    """Publish a saved run's object store again (``labels.json``: every object with its observations)
+    under ``evidence`` (a ``stack.evidence.EvidenceConfig``; None = the defaults) and score the map
+    against the run's ground truth (``report.json``'s objects, ``groundtruth_tum.txt``'s first pose
+    for ``T_world_map``). Returns the summary, with ``map_labels`` and ``run``."""
+    import json
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from stack.evidence import EvidenceConfig
+    from stack.metrics import read_tum
+    from stack.object_store import ObjectStore, ObjectStoreError, Observation, read_objects
+
+    run_dir = Path(run_dir)
+    report_path, labels_path, gt_path = (run_dir / n for n in ("report.json", "labels.json", "groundtruth_tum.txt"))
+    for p in (report_path, labels_path, gt_path):
+        if not p.is_file():
+            raise RunDirError(f"{p}: missing; expected a folder written by `dopeslam run`")
+    try:
+        report = json.loads(report_path.read_text())
+        truth_rows = report["labels"]
+        objects = [SimpleNamespace(name=str(r["object"]), cls=str(r["class"]),
+                                   T_world_obj=_translation(r["truth_xyz"])) for r in truth_rows]
+    except (ValueError, KeyError, TypeError) as e:
+        raise RunDirError(f"{report_path}: field 'labels': expected rows with object, class and truth_xyz ({e})") from e
+    try:
+        saved = read_objects(labels_path)
+        floor = ObjectStore.load(labels_path).floor
+    except ObjectStoreError as e:
+        raise RunDirError(str(e)) from e
+    if floor is None and report.get("map_floor"):
+        floor = (np.asarray(report["map_floor"]["normal"], dtype=float), float(report["map_floor"]["d_m"]))
+    dims = {o.cls: o.size for o in saved}
+    store = ObjectStore(dims=dims, policy=report.get("policy", "robust-mean"), evidence=evidence or EvidenceConfig())
+    for obs in sorted((h for o in saved for h in o.history), key=lambda h: h.stamp):
+        if isinstance(obs, Observation):
+            store.add(obs)
+    store.floor = floor
+    store.publish()
+    _, T_world_base = read_tum(gt_path)
+    rows, map_rows, summary = score_map(store.labels(), objects, T_world_base[0], len(store.candidates()))
+    return {**summary, "map_labels": map_rows, "run": str(run_dir), "scenario": report.get("scenario"),
+            "seed": report.get("seed"), "input": report.get("input")}
+
+
+def _translation(xyz) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = np.asarray(xyz, dtype=float).reshape(3)
+    return T

@@ -28,6 +28,13 @@ def register(sub) -> None:
     add_dope_options(p)
     p.set_defaults(func=run)
 
+    p = sub.add_parser("score", help="publish saved runs' maps again (evidence settings) and score the whole map")
+    p.add_argument("runs", nargs="+", help="folders written by `dopeslam run`")
+    p.add_argument("--set", dest="settings", action="append", default=[], metavar="FIELD=VALUE",
+                   help="an evidence setting (stack.evidence.EvidenceConfig), e.g. min_observations=3")
+    p.add_argument("--out", default=None, help="write the scores as JSON here")
+    p.set_defaults(func=score)
+
 
 def run(args) -> int:
     from stack.object_store import POLICIES
@@ -39,4 +46,49 @@ def run(args) -> int:
                          args.policy, args.duration, args.weights, loop_closure=args.loop_closure)
     print_summary(report)
     print(f"wrote {args.out}/report.json, labels.xlsx, map.png, estimate_tum.txt, groundtruth_tum.txt")
+    return 0
+
+
+def score(args) -> int:
+    import json
+    import sys
+
+    import numpy as np
+    from pydantic import ValidationError
+
+    from stack.evidence import EvidenceConfig
+    from testbed.scoring import RunDirError, rescore_run
+
+    try:
+        fields = dict(s.split("=", 1) for s in args.settings)
+        evidence = EvidenceConfig(**fields)
+    except ValueError as e:
+        first = e.errors()[0] if isinstance(e, ValidationError) else None
+        where = f"field '{first['loc'][0]}': {first['msg']}" if first else "expected FIELD=VALUE"
+        print(f"dopeslam score: --set {where}; fields: {sorted(EvidenceConfig.model_fields)}", file=sys.stderr)
+        return 2
+    rows = []
+    for run_dir in args.runs:
+        try:
+            s = rescore_run(run_dir, evidence)
+        except RunDirError as e:
+            print(f"dopeslam score: {e}", file=sys.stderr)
+            return 2
+        rows.append(s)
+        prec = "-" if s["map_precision"] is None else f"{100 * s['map_precision']:.0f} %"
+        err = "-" if s["mean_error_m"] is None else f"{100 * s['mean_error_m']:.1f} cm"
+        print(f"{run_dir}: {s['labels_in_map']} labels, {s['correct_labels']} correct, {s['misplaced']} misplaced, "
+              f"{s['phantom']} phantom; precision {prec}, {s['correct_labels']}/{s['objects']} labelled, "
+              f"mean error {err}, {s['candidates']} candidates")
+    n_map, n_ok = sum(s["labels_in_map"] for s in rows), sum(s["correct_labels"] for s in rows)
+    n_obj = sum(s["objects"] for s in rows)
+    errs = [s["mean_error_m"] for s in rows if s["mean_error_m"] is not None]
+    print(f"{len(rows)} runs: {n_map} labels, {n_ok} correct, {n_map - n_ok} false; precision "
+          f"{'-' if not n_map else f'{100 * n_ok / n_map:.1f} %'}, recall {100 * n_ok / max(1, n_obj):.1f} %, "
+          f"mean error {'-' if not errs else f'{100 * float(np.mean(errs)):.1f} cm'} (mean of the runs' means); "
+          f"{sum(1 for s in rows if s['false_labels'] == 0)}/{len(rows)} maps without a false label")
+    if args.out:
+        from testbed.simulate import write_json
+
+        write_json(args.out, {"evidence": evidence.model_dump(), "runs": rows})
     return 0
