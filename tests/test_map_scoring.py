@@ -66,3 +66,51 @@ def test_assignment_prefers_more_matches_within_the_threshold_over_a_smaller_tot
 def test_an_empty_map_has_no_precision_and_no_recall():
     _, _, s = scored([], [truth("e", "E", (0, 0, 0))])
     assert s["map_precision"] is None and s["map_recall"] == 0.0 and s["missing"] == 1
+
+
+def saved_run(tmp_path):
+    """A run folder as `dopeslam run` writes it: a store with one well-seen Mustard and one glimpsed
+    Yogurt, the truth of the one Mustard, and the ground-truth trajectory."""
+    import json
+
+    from stack.metrics import write_tum
+    from stack.object_store import ObjectStore, Observation
+
+    store = ObjectStore({"Mustard": (0.16, 0.049, 0.065), "Yogurt": (0.054, 0.068, 0.068)})
+    for k in range(12):
+        cam = np.array([k * 0.1 - 0.6, -1.0, 0.3])
+        store.add(Observation(0.2 * k, "Mustard", np.array([0.0, 0.0, 0.3]), np.array([0, 0, 0, 1.0]), 10.0, True, 1.0, cam))
+    store.add(Observation(1.0, "Yogurt", np.array([2.0, 0.0, 0.3]), np.array([0, 0, 0, 1.0]), 10.0, True, 1.0, None))
+    store.floor = (np.array([0.0, 0.0, 1.0]), 0.0)
+    run = tmp_path / "run"
+    run.mkdir()
+    store.save(run / "labels.json")
+    (run / "report.json").write_text(json.dumps({"scenario": "hand-built", "seed": 0, "policy": "robust-mean",
+                                                 "labels": [{"object": "mustard", "class": "Mustard",
+                                                             "truth_xyz": [0.01, 0.0, 0.3]}]}))
+    write_tum(run / "groundtruth_tum.txt", np.array([0.0, 1.0]), np.stack([np.eye(4), np.eye(4)]))
+    return run
+
+
+def test_score_publishes_a_saved_run_again_under_other_evidence_settings(tmp_path, capsys):
+    from testbed.cli import main
+
+    run = saved_run(tmp_path)
+    assert main(["score", str(run)]) == 0
+    assert "1 labels, 1 correct, 0 misplaced, 0 phantom; precision 100 %" in capsys.readouterr().out
+    assert main(["score", str(run), "--set", "min_observations=1", "--set", "min_span_s=0"]) == 0
+    assert "2 labels, 1 correct, 0 misplaced, 1 phantom; precision 50 %" in capsys.readouterr().out
+
+
+def test_score_names_a_bad_setting_or_a_missing_file_and_exits_2(tmp_path, capsys):
+    from testbed.cli import main
+
+    run = saved_run(tmp_path)
+    assert main(["score", str(run), "--set", "vote_share=2"]) == 2
+    assert "vote_share" in capsys.readouterr().err
+    assert main(["score", str(run), "--set", "no_such_field=1"]) == 2
+    assert "no_such_field" in capsys.readouterr().err
+    (run / "groundtruth_tum.txt").unlink()
+    assert main(["score", str(run)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "groundtruth_tum.txt" in err and len(err.splitlines()) == 1
