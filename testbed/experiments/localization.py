@@ -15,7 +15,7 @@ from stack.transforms import transform_points
 from testbed.run import FALSE_LABEL_M, run_episode
 from testbed.simulate import write_json
 
-PAPER = Path(__file__).resolve().parents[2].parent / "shared" / "reference" / "paper_results.json"
+PAPER = Path(__file__).resolve().parent / "paper_results.json"  # the paper's figures, shipped with the package
 METHODS = ("original", "fpr", "best", "worst")
 MAX_DETECTION_RANGE_M = 10.0  # the D435i's depth range (sim/data/hardware.toml depth_max)
 
