@@ -149,14 +149,18 @@ def run(scenario=None, train_seeds=range(0, 8), eval_seeds=range(8, 10), timeste
               "eval_seeds": list(eval_seeds), "detector": detector, "scenario": scenario, "policies": {}}
     print(f"trained PPO for {timesteps} steps in {train_s:.0f} s ({timesteps / train_s:.0f} steps/s); "
           f"evaluated on seeds {list(eval_seeds)}")
-    print(f"{'policy':<14} {'error cm':>14} {'false':>11} {'missing':>11} {'return':>13}")
+    print(f"{'policy':<14} {'error cm':>14} {'labels':>11} {'false':>11} {'missing':>11} {'precision':>11} "
+          f"{'return':>13}")
     for name in policies:
         e, f, m, ret = stat(name, "mean_error_m", 100), stat(name, "false_labels"), stat(name, "missing"), stat(name, "return")
-        report["policies"][name] = {"mean_error_cm": e, "false_labels": f, "missing": m, "return": ret}
+        n, prec = stat(name, "labels_in_map"), stat(name, "map_precision")
+        report["policies"][name] = {"mean_error_cm": e, "labels_in_map": n, "false_labels": f, "missing": m,
+                                    "map_precision": prec, "return": ret}
 
         def fmt(x, d=1):
             return "-" if x[0] is None else f"{x[0]:.{d}f} ± {x[1]:.{d}f}"
-        print(f"{name:<14} {fmt(e):>14} {fmt(f, 2):>11} {fmt(m, 2):>11} {fmt(ret, 2):>13}")
+        print(f"{name:<14} {fmt(e):>14} {fmt(n):>11} {fmt(f, 2):>11} {fmt(m, 2):>11} {fmt(prec, 2):>11} "
+              f"{fmt(ret, 2):>13}")
     (out / "report.json").write_text(json.dumps(report, indent=2))
     return report
 

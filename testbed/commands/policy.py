@@ -1,10 +1,16 @@
 """``dopeslam evaluate-policy NAME [--scenario S ...] --episodes N --out DIR``: labelling policies on
 the same cached episodes, scored against ground truth, in the structure of the paper's Table 2.
 
-NAME is a baseline (``last``, ``last-fpr``, ``best-score``, ``robust-mean``, ``oracle-best``,
-``oracle-worst``) or ``all``. Each scenario (default: every bundled one) runs seeds
+NAME is a baseline (``last``, ``last-fpr``, ``best-score``, ``robust-mean``, ``evidence``,
+``oracle-best``, ``oracle-worst``) or ``all``. Each scenario (default: every bundled one) runs seeds
 ``--first-seed`` .. ``--first-seed + N - 1``; the first run of an episode computes and caches its
 perception (simulation, KISS-ICP, DOPE: minutes), later runs replay it.
+
+Every published label is scored as ``testbed.scoring.score_map`` does (one-to-one with the true
+objects of its class: correct within 0.25 m, else misplaced, or a phantom when matched to nothing);
+the table gives per policy the mean label error of the matched labels, the labels in the map, the
+false labels among them (misplaced + phantom), the objects without a correct label, and the map's
+precision (correct / labels in the map) and recall (correct / objects).
 
 Writes ``DIR/policy_eval.json`` (per policy, scenario and seed the map score; per policy and
 scenario the mean and standard deviation over seeds; whether the best non-oracle baseline beats
@@ -150,9 +156,14 @@ def summarise(names: list[str], scenarios: list[str], seeds: list[int], runs: li
                 "episodes": len(rs),
                 "objects": int(rs[0]["objects"]) if sc != "all" else None,
                 "mean_error_cm": _stats([None if r["mean_error_m"] is None else 100 * r["mean_error_m"] for r in rs]),
+                "labels_in_map": _stats([r["labels_in_map"] for r in rs]),
                 "false_labels": _stats([r["false_labels"] for r in rs]),
+                "misplaced": _stats([r["misplaced"] for r in rs]),
+                "phantom": _stats([r["phantom"] for r in rs]),
                 "missing": _stats([r["missing"] for r in rs]),
-                "unmatched_map_objects": _stats([r["unmatched_map_objects"] for r in rs]),
+                "map_precision": _stats([r["map_precision"] for r in rs]),
+                "map_recall": _stats([r["map_recall"] for r in rs]),
+                "candidates": _stats([r.get("candidates") for r in rs]),
                 "return": _stats([r["return"] for r in rs]),
             }
         groups[name] = per_sc
@@ -196,13 +207,18 @@ def _fmt(s: dict | None, digits: int = 1) -> str:
     return f"{s['mean']:.{digits}f} ± {s['std']:.{digits}f}"
 
 
+def _mean(s: dict | None, digits: int = 1) -> str:
+    return "-" if not s or s.get("mean") is None else f"{s['mean']:.{digits}f}"
+
+
 def table_markdown(result: dict) -> str:
     paper = result.get("paper_table2") or {}
     lines = []
     for sc in result["scenarios"] + (["all"] if len(result["scenarios"]) > 1 else []):
         lines.append(f"\n### {sc} ({len(result['seeds'])} seeds)\n")
-        lines.append("| policy | paper row | mean label error (cm) | false labels | missing | phantom labels | paper error (cm) | paper false labels |")
-        lines.append("|---|---|---|---|---|---|---|---|")
+        lines.append("| policy | paper row | mean label error (cm) | labels in map | false labels (misplaced + phantom) "
+                     "| missing | map precision | map recall | paper error (cm) | paper false labels |")
+        lines.append("|---|---|---|---|---|---|---|---|---|---|")
         for name in result["policies"]:
             g = result["by_policy"][name].get(sc)
             if g is None:
@@ -210,9 +226,10 @@ def table_markdown(result: dict) -> str:
             row = PAPER_ROWS.get(name, "")
             pe = paper.get("mean_distance_cm", {}).get(row, "") if row else ""
             pf = paper.get("false_labels_of_6", {}).get(row, "") if row else ""
-            lines.append(f"| {name} | {row or '-'} | {_fmt(g['mean_error_cm'])} | {_fmt(g['false_labels'], 2)} | "
-                         f"{_fmt(g['missing'], 2)} | {_fmt(g['unmatched_map_objects'], 2)} | {pe if pe != '' else '-'} | "
-                         f"{pf if pf != '' else '-'} |")
+            lines.append(f"| {name} | {row or '-'} | {_fmt(g['mean_error_cm'])} | {_fmt(g['labels_in_map'], 1)} | "
+                         f"{_fmt(g['false_labels'], 2)} ({_mean(g['misplaced'])} + {_mean(g['phantom'])}) | "
+                         f"{_fmt(g['missing'], 2)} | {_fmt(g['map_precision'], 2)} | {_fmt(g['map_recall'], 2)} | "
+                         f"{pe if pe != '' else '-'} | {pf if pf != '' else '-'} |")
         dropped = max_dropped(result.get("runs", []), sc) if sc != "all" else 0
         if dropped:
             lines.append(f"\nwarning: up to {dropped} detections per episode found no free object slot; "

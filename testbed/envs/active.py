@@ -8,7 +8,7 @@ client (``sim.episode.Episode``), so several run side by side in one process or 
 
 Observation, reward and ``info``: as ``DopeSlamLabelling-v0`` (``labelling``), plus
 ``info["route_map"]``: the scenario's waypoints in the ``map`` frame (the route a person would give
-the robot; ``RouteDriver`` follows it). Action: ``Dict(labels=MultiDiscrete([3] * max_objects),
+the robot; ``RouteDriver`` follows it). Action: ``Dict(labels=MultiDiscrete([4] * max_objects),
 velocity=Box(-1, 1, (2,)))``: forward speed and yaw rate as fractions of ``max_speed``
 (default 1 m/s, 2 rad/s). The episode lasts the
 scenario's duration (or ``duration``).
@@ -23,10 +23,10 @@ from gymnasium import spaces
 
 from stack.transforms import inv, transform_points
 from testbed.envs import perception_cache as pc
-from testbed.envs.labelling import (catalog_classes, final_score, observation_space, pose_features,
+from testbed.envs.labelling import (catalog_classes, class_dims, final_score, observation_space, pose_features,
                                     resolve_input, truth_in_map)
 from testbed.envs.render import TopDownMap, camera_panel, side_by_side
-from testbed.envs.slots import RewardConfig, SlotMap, with_lists
+from testbed.envs.slots import N_ACTIONS, RewardConfig, SlotMap, floor_half_extents, with_lists
 
 
 class VelocityCommand:
@@ -61,11 +61,12 @@ class DopeSlamActiveLabellingEnv(gym.Env):
         self._factory = detector_factory
         self.renderer = renderer
         self.classes = catalog_classes()
+        self._dims = class_dims(self.classes)
         self.N = int(max_objects)
         self.observation_space = observation_space(self.N, len(self.classes))
         v, w = float(max_speed[0]), float(max_speed[1])
         self.action_space = spaces.Dict({
-            "labels": spaces.MultiDiscrete(np.full(self.N, 3, dtype=np.int64)),
+            "labels": spaces.MultiDiscrete(np.full(self.N, N_ACTIONS, dtype=np.int64)),
             "velocity": spaces.Box(-1.0, 1.0, (2,), dtype=np.float32),  # fractions of max_speed
         })
         self.max_speed = np.array([v, w])
@@ -98,6 +99,11 @@ class DopeSlamActiveLabellingEnv(gym.Env):
             self._T_map_base = ff.T_map_base
         d = ff.detections[self.stages]
         d["err"] = self.slots.errors_to_truth(d["xyz"], d["cls"]) if self.slots is not None else np.zeros(len(d["cls"]))
+        d["stamp"] = np.full(len(d["cls"]), ff.stamp)
+        floor = self.live.odom.floor_plane_map()
+        if self.slots is not None and self.slots.floor is None and floor is not None:
+            self.slots.floor = floor
+        d["half"] = floor_half_extents(d["quat"], d["cls"], self._dims, floor)
         return ff, with_lists(d)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -128,7 +134,8 @@ class DopeSlamActiveLabellingEnv(gym.Env):
         stamps, _ = self.live.odom.trajectory()
         self.T_world_map = ep.T_world_base_at(stamps[0])  # map = base_link at the first registered scan
         truth_cls, truth_xyz = truth_in_map(ep.objects, self.T_world_map, self.classes)
-        self.slots = SlotMap(self.N, len(self.classes), truth_cls, truth_xyz, self.gate_m, self.reward_cfg)
+        self.slots = SlotMap(self.N, len(self.classes), truth_cls, truth_xyz, self.gate_m, self.reward_cfg,
+                             floor=self.live.odom.floor_plane_map())
         ff, d = got
         d["err"] = self.slots.errors_to_truth(d["xyz"], d["cls"])
         d["err_list"] = d["err"].tolist()

@@ -8,20 +8,28 @@ Observation (``Dict``):
 - ``slots`` (max_objects, F) float32, one row per object slot (``slots.slot_features`` names the
   columns): a present flag (a detection of this slot in this frame), whether the slot is in use,
   its class one-hot, the detection's map-frame position, belief sum, FPR verdict (1 = passed),
-  range (m) and stage count / 6; then the slot's label: whether it has one, its position, log
-  evidence count, belief sum, the detection-to-label distance and log of the slot's detections.
+  range (m) and stage count / 6; then the slot's label: whether it has one (is published), its
+  position, log evidence count, belief sum, the detection-to-label distance and log of the slot's
+  detections; then the slot's evidence as the stack judges it before publishing an object
+  (``stack.evidence``; ``slots`` describes each): its FPR-passing detections within range, their
+  time span (s), the largest angle between their viewing rays (deg), the anchor's height above the
+  odometry's floor plane (m), the lowest corner of the class's cuboid above it (m; both 0 without a
+  floor plane), and the class-vote share at the anchor (0..1). A slot without a label is a candidate.
 - ``pose`` (6,) float32: the robot's estimated pose in ``map`` (x, y, z, cos yaw, sin yaw) and the
   episode's elapsed fraction.
 
-Action: ``MultiDiscrete([3] * max_objects)`` (0 ignore, 1 replace, 2 fuse; see ``slots``), with one
-more entry when ``stage_choice=True``: the index into ``stage_options`` of the DOPE stage count
-to use on the next frame (it costs ``stage_cost_per_s`` per second of DOPE time).
+Action: ``MultiDiscrete([4] * max_objects)`` (0 ignore, 1 replace, 2 fuse, 3 withdraw; see
+``slots``), with one more entry when ``stage_choice=True``: the index into ``stage_options`` of the
+DOPE stage count to use on the next frame (it costs ``stage_cost_per_s`` per second of DOPE time).
 
-Reward: the decrease of the map's cost (label errors against ground truth, false labels, missing
-and phantom labels; ``slots.RewardConfig``). ``info`` holds, every step, each slot's current
-detection's and label's distance to the truth (``detection_error_m``, ``label_error_m``: for
-oracles and analysis, not for a learning policy), and at the end ``map_score``: the summary of
-``testbed.run.score_labels`` (mean error, false labels, missing) and the per-object rows.
+Reward: the decrease of the map's cost (per class a one-to-one assignment of the published labels
+to the true objects, as ``testbed.scoring.score_map``: each matched label's error, misplaced and
+phantom labels, missing objects; ``slots.RewardConfig``). ``info`` holds, every step, each slot's
+current detection's and label's distance to the truth (``detection_error_m``, ``label_error_m``:
+for oracles and analysis, not for a learning policy), and at the end ``map_score``: the summary of
+``testbed.scoring.score_map`` on the published labels (labels in the map, correct, misplaced and
+phantom labels, map precision and recall, mean error, candidates: slots in use without a label),
+the per-object rows (``labels``) and the per-label rows (``map_labels``).
 
 Episodes: the product of ``scenario`` (one or a list) and ``seeds``. ``reset(seed=...)`` seeds
 ``self.np_random``, which picks the episode; ``reset(options={"episode": i})`` or
@@ -37,11 +45,13 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from stack.evidence import EvidenceConfig
 from stack.transforms import inv, transform_points
 from testbed.envs import perception_cache as pc
 from testbed.envs.render import TopDownMap, camera_panel, side_by_side
-from testbed.envs.slots import POSITION_LIMIT_M, VALUE_LIMIT, RewardConfig, SlotMap, slot_features, with_lists
-from testbed.run import score_labels
+from testbed.envs.slots import (N_ACTIONS, POSITION_LIMIT_M, VALUE_LIMIT, RewardConfig, SlotMap, floor_half_extents,
+                                slot_features, with_lists)
+from testbed.scoring import score_map
 
 
 def catalog_classes() -> list[str]:
@@ -84,18 +94,29 @@ def truth_in_map(objects: list, T_world_map: np.ndarray, classes: list[str]) -> 
 
 
 def final_score(slots: SlotMap, objects: list, T_world_map: np.ndarray, classes: list[str]) -> dict:
-    """``testbed.run.score_labels`` on the slots' labels: the same figures as ``dopeslam run``."""
+    """``testbed.scoring.score_map`` on the slots' labels (slot j is label id j + 1): the same figures
+    as ``dopeslam run``; the slots in use without a label are the candidates."""
     labels = [SimpleNamespace(id=j + 1, cls=classes[slots.cls[j]], xyz=slots.label[j].copy(),
                               observations=int(slots.ev_n[j]))
               for j in np.flatnonzero(slots.has)]
     truths = [o if not isinstance(o, dict) else
               SimpleNamespace(name=o["name"], cls=o["cls"], T_world_obj=np.asarray(o["T_world_obj"])) for o in objects]
-    rows, summary = score_labels(labels, truths, T_world_map)
+    candidates = int(np.count_nonzero((slots.cls >= 0) & ~slots.has))
+    rows, map_rows, summary = score_map(labels, truths, T_world_map, candidates)
     summary["final_cost"] = float(slots.cost)
     summary["dropped_detections"] = int(slots.dropped)
     summary["duplicate_detections"] = int(slots.duplicates)
     summary["recycled_slots"] = int(slots.recycled)
-    return {"summary": summary, "labels": rows}
+    summary["withdrawn_labels"] = int(slots.withdrawn)
+    return {"summary": summary, "labels": rows, "map_labels": map_rows}
+
+
+def class_dims(classes: list[str]) -> np.ndarray:
+    """(C, 3) cuboid size of each class (the catalog's, as the object store's)."""
+    from sim.objects import load_catalog
+
+    cat = load_catalog()
+    return np.array([np.asarray(cat[c].dims, dtype=float) if c in cat else np.zeros(3) for c in classes]).reshape(-1, 3)
 
 
 class Replay:
@@ -120,12 +141,16 @@ class Replay:
         self.pose = np.stack([pose_features(T, (t - self.stamps[0]) / duration)
                               for T, t in zip(self.T_map_base, self.stamps)]) if self.n_frames else np.zeros((0, 6))
         probe = SlotMap(1, len(classes), self.truth_cls, self.truth_xyz)
+        self.floor = pc.floor_of(perception)
+        dims = class_dims(classes)
         self.by_stage = {}
         for s in self.stage_options:
             sel = np.flatnonzero(a["det_stage"] == s)
             sel = sel[np.argsort(a["det_frame"][sel], kind="stable")]
             d = {k: a[f"det_{k}"][sel] for k in pc.DET_FIELDS}
             d["err"] = probe.errors_to_truth(d["xyz"], d["cls"])
+            d["stamp"] = self.stamps[a["det_frame"][sel]] if self.n_frames else np.zeros(len(sel))
+            d["half"] = floor_half_extents(d["quat"], d["cls"], dims, self.floor)
             d = with_lists(d)
             starts = np.searchsorted(a["det_frame"][sel], np.arange(self.n_frames + 1))
             self.by_stage[s] = (d, starts)
@@ -155,7 +180,7 @@ class DopeSlamLabellingEnv(gym.Env):
                  max_objects: int = 16, gate_m: float = 0.5, reward: RewardConfig | dict | None = None,
                  cache_dir=None, detector_factory=None, detector_id: str | None = None,
                  detector_stages=None, render_mode: str | None = None, thumb=pc.DEFAULT_THUMB,
-                 build: bool = True, renderer: str = "auto"):
+                 build: bool = True, renderer: str = "auto", evidence: EvidenceConfig | dict | None = None):
         from sim.scenario import DEFAULT_SCENARIO
 
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -171,6 +196,7 @@ class DopeSlamLabellingEnv(gym.Env):
         self.input_mode, self.stages = input_mode, int(stages)
         self.gate_m = float(gate_m)
         self.reward_cfg = RewardConfig(**reward) if isinstance(reward, dict) else (reward or RewardConfig())
+        self.evidence_cfg = EvidenceConfig(**evidence) if isinstance(evidence, dict) else (evidence or EvidenceConfig())
         self.cache_dir, self.thumb, self.build, self.renderer = cache_dir, tuple(thumb), build, renderer
         self._factory, self._detector_id = detector_factory, detector_id
         if detector_factory is not None and not detector_id:
@@ -183,7 +209,7 @@ class DopeSlamLabellingEnv(gym.Env):
             raise ValueError("stage_choice: the detector gives one stage count per pass; nothing to choose")
         self.N = int(max_objects)
         self.observation_space = observation_space(self.N, len(self.classes))
-        nvec = [3] * self.N + ([len(self.stage_options)] if self.stage_choice else [])
+        nvec = [N_ACTIONS] * self.N + ([len(self.stage_options)] if self.stage_choice else [])
         self.action_space = spaces.MultiDiscrete(np.array(nvec, dtype=np.int64))
         self.slots: SlotMap | None = None
         self.replay: Replay | None = None
@@ -243,7 +269,8 @@ class DopeSlamLabellingEnv(gym.Env):
         super().reset(seed=seed)
         self.episode = self.episode_index(options)
         self.replay = r = self.replay_for(self.episode)
-        self.slots = SlotMap(self.N, len(self.classes), r.truth_cls, r.truth_xyz, self.gate_m, self.reward_cfg)
+        self.slots = SlotMap(self.N, len(self.classes), r.truth_cls, r.truth_xyz, self.gate_m, self.reward_cfg,
+                             floor=r.floor, evidence=self.evidence_cfg)
         self.k = 0
         self.stage = r.default_stage
         self.steps = 0

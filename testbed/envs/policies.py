@@ -9,6 +9,11 @@ errors in ``info`` (the paper's hand-picked best and worst cases), the others on
 ``best-score``     a detection that passed FPR replaces the label when its belief sum is lower
                    (more certain) than the one the label rests on
 ``robust-mean``    every FPR-passing detection is fused: the label is the robust mean of them
+``evidence``       the stack's publishing rule (``stack.evidence``): every FPR-passing detection
+                   joins the slot's evidence, and the slot is published (fused) only while its
+                   evidence meets ``EvidenceConfig`` (enough FPR-passing detections over a time
+                   span and from more than one viewpoint, the cuboid above the floor, not outvoted
+                   by another class at its place); otherwise it is withdrawn and stays a candidate
 ``oracle-best``    ground truth: a detection replaces the label when it is nearer the true object,
                    never when it would be a false label (> 0.25 m); per object the best detection
 ``oracle-worst``   ground truth: a detection replaces the label when it is further from the true
@@ -21,8 +26,9 @@ from typing import Callable
 
 import numpy as np
 
-from testbed.envs.slots import FUSE, IGNORE, REPLACE, slot_features
-from testbed.run import FALSE_LABEL_M
+from stack.evidence import EvidenceConfig
+from testbed.envs.slots import FUSE, IGNORE, REPLACE, WITHDRAW, slot_features
+from testbed.scoring import FALSE_LABEL_M
 
 
 class Columns:
@@ -91,6 +97,36 @@ class RobustMean(Policy):
         return np.where((s[:, self.c.present] > 0) & (s[:, self.c.det_fpr] > 0), FUSE, IGNORE)
 
 
+class Evidence(Policy):
+    """Publishes what the stack's ``EvidenceConfig`` would publish, from the slots' evidence columns.
+
+    The class vote is read as the slot's share of the FPR-passing detections at its place: the slot
+    stays published while no other class there has more (a tie keeps it), which is the stack's vote
+    when two classes meet at one place.
+    """
+
+    name = "evidence"
+
+    def __init__(self, n_classes: int, extra_actions: int = 0, extra_default=None,
+                 evidence: EvidenceConfig | None = None):
+        super().__init__(n_classes, extra_actions, extra_default)
+        self.evidence = evidence or EvidenceConfig()
+
+    def publishable(self, s: np.ndarray) -> np.ndarray:
+        """Per slot: does its evidence meet the stack's rule?"""
+        c, e = self.c, self.evidence
+        return ((s[:, c.ev_fpr_detections] >= e.min_observations) & (s[:, c.ev_span_s] >= e.min_span_s)
+                & (s[:, c.ev_view_angle_deg] >= e.min_view_angle_deg)
+                & (s[:, c.ev_floor_clearance_m] >= -e.floor_tolerance_m) & (s[:, c.ev_vote_share] >= 0.5))
+
+    def labels(self, s, info):
+        c = self.c
+        ok = self.publishable(s)
+        passing = (s[:, c.present] > 0) & (s[:, c.det_fpr] > 0)
+        short = (s[:, c.has_label] > 0) & ~ok
+        return np.where(passing, np.where(ok, FUSE, WITHDRAW), np.where(short, WITHDRAW, IGNORE))
+
+
 class OracleBest(Policy):
     name = "oracle-best"
     uses_ground_truth = True
@@ -113,13 +149,14 @@ class OracleWorst(Policy):
 
 
 BASELINES: dict[str, Callable[..., Policy]] = {p.name: p for p in (Last, LastFpr, BestScore, RobustMean,
-                                                                    OracleBest, OracleWorst)}
+                                                                    Evidence, OracleBest, OracleWorst)}
 PAPER_NAMES = {"last": "original", "last-fpr": "fpr", "oracle-best": "best", "oracle-worst": "worst"}
 
 
 def make_policy(name: str, env) -> Policy:
     """A baseline for ``env`` (its class count and any extra action entries, e.g. the stage choice,
-    which baselines leave at the env's configured stage count)."""
+    which baselines leave at the env's configured stage count; ``evidence`` takes the env's
+    ``evidence_cfg``, by default ``EvidenceConfig()``)."""
     if name not in BASELINES:
         raise KeyError(f"unknown baseline {name!r}; expected one of {sorted(BASELINES)}")
     base = env.unwrapped
@@ -129,6 +166,8 @@ def make_policy(name: str, env) -> Policy:
     default = []
     if extra and getattr(base, "stage_choice", False):
         default = [base.stage_options.index(base.stages) if base.stages in base.stage_options else len(base.stage_options) - 1]
+    if BASELINES[name] is Evidence:
+        return Evidence(n_classes, extra, default, getattr(base, "evidence_cfg", None))
     return BASELINES[name](n_classes, extra, default)
 
 

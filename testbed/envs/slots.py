@@ -15,14 +15,29 @@ The policy then decides per slot what the current detection does to that slot's 
 - ``REPLACE`` (1): the label becomes this detection (its evidence is this detection alone);
 - ``FUSE`` (2): the detection joins the label's evidence, and the label is the robust mean of the
   evidence: the mean of the positions within k robust sigmas of their median (as the store's
-  ``robust-mean`` policy; ``stack.object_store.robust_mean``).
+  ``robust-mean`` policy; ``stack.object_store.robust_mean``);
+- ``WITHDRAW`` (3): the slot's label is taken off the map (the slot is a candidate again, as the
+  stack keeps an object it does not publish). The label's evidence is kept, and a current
+  detection that passed FPR joins it, so a later ``FUSE`` publishes the label with all of it.
+  Unlike the other actions it applies to every slot in use, with or without a detection this frame.
 
-The map's *cost* scores the labels against the truth the way ``testbed.run.score_labels`` does:
-each true object, in order, takes the nearest unused label of its class; a matched label costs
-its distance (plus ``false_label_penalty`` when it is further than 0.25 m: a false label), an
-object with no label costs ``missing_cost_m``, and a label matched to no object costs
-``extra_label_penalty``. The reward of a step is the decrease of the cost, so an episode's
-return is the initial cost (every object missing) less the final one.
+Each slot also carries its evidence as ``stack.evidence`` defines it (``EvidenceConfig``: what an
+object needs before the stack publishes it), from the slot's detections, whatever the labels: the
+FPR-passing detections within the camera's range (``max_range_m``), the time between the first and
+last of them, the largest angle between their viewing rays to the slot's anchor, the anchor's
+height above the floor plane the odometry fitted (and the lowest corner of the class's cuboid
+there, oriented as the slot's latest detection: the stack's floor check), and the class vote: the
+share of the FPR-passing detections of the slots within ``vote_radius_m`` of the anchor that are
+of the slot's class (the stack publishes only the best-supported class at a place).
+
+The map's *cost* scores the labels against the truth the way ``testbed.scoring.score_map`` does:
+per class, a one-to-one assignment of labels to true objects (``linear_sum_assignment``; the most
+matches within 0.25 m first, then the least total distance). A matched label costs its distance
+(plus ``false_label_penalty`` when it is further than 0.25 m: a misplaced label), an object with
+no label costs ``missing_cost_m``, and a label matched to no object (a phantom: a second label of
+one object, or a label where there is no object of its class) costs ``extra_label_penalty``.
+The reward of a step is the decrease of the cost, so an episode's return is the initial cost
+(every object missing) less the final one.
 """
 from __future__ import annotations
 
@@ -31,23 +46,32 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
 
-from testbed.run import FALSE_LABEL_M
+from stack.evidence import EvidenceConfig
+from testbed.scoring import FALSE_LABEL_M
 
-IGNORE, REPLACE, FUSE = 0, 1, 2
+IGNORE, REPLACE, FUSE, WITHDRAW = 0, 1, 2, 3
+N_ACTIONS = 4
 ROBUST_K = 3.0  # as stack.object_store.robust_mean
 ROBUST_FLOOR_M = 0.02
 
 POSITION_LIMIT_M = 1000.0
 VALUE_LIMIT = 1.0e6
+_BEYOND = 1.0e6  # an assignment cost: a match beyond the threshold costs more than any within it (as scoring.assign)
 
 
 @dataclass(frozen=True)
 class RewardConfig:
     missing_cost_m: float = 0.5  # an object without a label costs as much as a label this far off
     false_label_penalty: float = 0.5  # added to a matched label's error when it is over 0.25 m
-    extra_label_penalty: float = 0.25  # a label that no true object claims (a phantom object)
+    extra_label_penalty: float = 0.25  # a label that no true object claims (a phantom label)
     stage_cost_per_s: float = 0.05  # reward lost per second of DOPE time (with stage choice)
+
+
+EVIDENCE_FEATURES = ["ev_fpr_detections", "ev_span_s", "ev_view_angle_deg", "ev_anchor_height_m",
+                     "ev_floor_clearance_m", "ev_vote_share"]
 
 
 def slot_features(n_classes: int) -> list[str]:
@@ -55,25 +79,44 @@ def slot_features(n_classes: int) -> list[str]:
     return (["present", "active"] + [f"class_{i}" for i in range(n_classes)]
             + ["det_x", "det_y", "det_z", "det_belief", "det_fpr", "det_range_m", "det_stages"]
             + ["has_label", "label_x", "label_y", "label_z", "label_log_evidence", "label_belief",
-               "det_label_dist_m", "log_detections"])
+               "det_label_dist_m", "log_detections"]
+            + EVIDENCE_FEATURES)
+
+
+def floor_half_extents(quat_xyzw: np.ndarray, cls: np.ndarray, dims_by_class: np.ndarray,
+                       floor: tuple[np.ndarray, float] | None) -> np.ndarray:
+    """Per detection: half the extent of its class's cuboid, in its orientation, along the floor's
+    normal (the anchor's height less this is the lowest corner's, as ``stack.evidence``); 0 without a floor."""
+    quat_xyzw = np.asarray(quat_xyzw, dtype=float).reshape(-1, 4)
+    if floor is None or not len(quat_xyzw):
+        return np.zeros(len(quat_xyzw))
+    n = np.asarray(floor[0], dtype=float)
+    R = Rotation.from_quat(quat_xyzw).as_matrix()  # (M, 3, 3)
+    return 0.5 * np.einsum("mi,mi->m", np.abs(np.einsum("mji,j->mi", R, n)), dims_by_class[np.asarray(cls, dtype=int)])
 
 
 class SlotMap:
-    """Slots, labels and cost for one episode.
+    """Slots, labels, evidence and cost for one episode.
 
     Detections come as a dict of arrays (``perception_cache.DET_FIELDS`` plus ``err``, the distance
-    to the nearest true object of the class, for the oracles) and the same columns as Python lists
-    under ``<name>_list`` (``with_lists``): association runs per detection in plain Python, which
-    for a dozen slots is faster than numpy's per-call overhead.
+    to the nearest true object of the class, for the oracles; ``stamp``, the frame's time; ``half``,
+    ``floor_half_extents``) and the same columns as Python lists under ``<name>_list``
+    (``with_lists``): association runs per detection in plain Python, which for a dozen slots is
+    faster than numpy's per-call overhead. ``floor``: the floor plane (n, d) in map the odometry
+    fitted (n.x + d is a height above it), or None; ``evidence``: the stack's publishing rule, whose
+    range limit and vote radius the slots' evidence columns use.
     """
 
     def __init__(self, n_slots: int, n_classes: int, truth_cls: np.ndarray, truth_xyz: np.ndarray,
-                 gate_m: float = 0.5, reward: RewardConfig = RewardConfig()):
+                 gate_m: float = 0.5, reward: RewardConfig = RewardConfig(),
+                 floor: tuple[np.ndarray, float] | None = None, evidence: EvidenceConfig | None = None):
         self.N, self.C = int(n_slots), int(n_classes)
         self.truth_cls = np.asarray(truth_cls, dtype=np.int64)
         self.truth_xyz = np.asarray(truth_xyz, dtype=np.float64).reshape(-1, 3)
         self.gate2 = float(gate_m) ** 2
         self.reward = reward
+        self.evidence = evidence or EvidenceConfig()
+        self.floor = None if floor is None else (np.asarray(floor[0], dtype=float).reshape(3), float(floor[1]))
         N = self.N
         self.cls = np.full(N, -1, dtype=np.int64)
         self.class_slots: dict[int, list[int]] = {}
@@ -88,21 +131,37 @@ class SlotMap:
         self.label_err = np.full(N, np.nan)
         self._ev = np.zeros((N, 64, 3))
         self._ev_belief = np.zeros((N, 64))
-        self.ev_n = np.zeros(N, dtype=np.int64)
+        self.ev_n = np.zeros(N, dtype=np.int64)  # the label's evidence (kept while withdrawn)
+        # the slot's evidence as the stack counts it: FPR-passing detections within range
+        self.fpr_n = [0] * N
+        self.fpr_first = [0.0] * N
+        self.fpr_last = [0.0] * N
+        self._cams = np.zeros((N, 64, 3))
+        self.n_cams = [0] * N
+        self.half = [0.0] * N  # floor half-extent of the slot's latest detection
         self.cur = np.full(N, -1, dtype=np.int64)  # index of the current detection per slot
         self._present: list[int] = []
         self.dets: dict | None = None
         self.stage = 0
         self.dropped = 0  # detections with no free slot
         self.recycled = 0  # unlabelled slots given to a new candidate
+        self.withdrawn = 0  # labels taken off the map
         self.frame_no = 0
         self.last_seen = [-1] * N
         self.duplicates = 0  # second detections of a slot in one frame
+        self._truth = self.truth_xyz.tolist()
+        self._truth_cls = self.truth_cls.tolist()
+        self._truth_by_class: dict[int, list[int]] = {}
+        for k, c in enumerate(self._truth_cls):
+            self._truth_by_class.setdefault(c, []).append(k)
+        self._D = [[math.inf] * N for _ in range(len(self._truth_cls))]
+        self._class_cost = {c: len(ks) * reward.missing_cost_m for c, ks in self._truth_by_class.items()}
         self.cost = self._cost()
         names = slot_features(self.C)
         self._col = {n: k for k, n in enumerate(names)}
         self._det0 = self._col["det_x"]
         self._lab0 = self._col["has_label"]
+        self._ev0 = self._col[EVIDENCE_FEATURES[0]]
         self._obs = np.zeros((N, len(names)), dtype=np.float32)
         self._minus_ones = np.full(N, -1.0)
 
@@ -164,14 +223,78 @@ class SlotMap:
             o[j, self._lab0 + 7] = math.log1p(self.n_dets[j])
         b = self._det0
         st = stage / 6.0
+        rng, stamps, cams, halves = dets["range_list"], dets.get("stamp_list"), dets.get("cam_list"), dets.get("half_list")
+        max_range = self.evidence.max_range_m
         for j in self._present:
             i = cur[j]
             x, y, z = xyz[i]
             o[j, 0] = 1.0
-            o[j, b:b + 7] = (x, y, z, _bounded(belief[i]), float(fpr[i]), _bounded(dets["range_list"][i]), st)
+            o[j, b:b + 7] = (x, y, z, _bounded(belief[i]), float(fpr[i]), _bounded(rng[i]), st)
             if self.has[j]:
                 lx, ly, lz = self.label[j]
                 o[j, self._lab0 + 6] = math.sqrt((x - lx) ** 2 + (y - ly) ** 2 + (z - lz) ** 2)
+            if halves is not None:
+                self.half[j] = halves[i]
+            if fpr[i] and not rng[i] > max_range:  # as stack.evidence: NaN range counts
+                t = stamps[i] if stamps is not None else float(self.frame_no)
+                if self.fpr_n[j] == 0:
+                    self.fpr_first[j] = t
+                self.fpr_last[j] = t
+                self.fpr_n[j] += 1
+                if cams is not None:
+                    self._add_cam(j, cams[i])
+            self._evidence_columns(j)
+        self._vote_columns()
+
+    def _add_cam(self, j: int, cam) -> None:
+        n = self.n_cams[j]
+        if n == self._cams.shape[1]:
+            self._cams = np.concatenate([self._cams, np.zeros_like(self._cams)], axis=1)
+        self._cams[j, n] = cam
+        self.n_cams[j] = n + 1
+
+    def anchor(self, j: int) -> tuple[float, float, float]:
+        n = self.n_dets[j]
+        sx, sy, sz = self.anchor_sum[j]
+        return (sx / n, sy / n, sz / n) if n else (0.0, 0.0, 0.0)
+
+    def _evidence_columns(self, j: int) -> None:
+        """Slot j's evidence columns (but the vote share) from its detections so far."""
+        e, o = self._ev0, self._obs
+        ax, ay, az = self.anchor(j)
+        angle = 0.0
+        n = self.n_cams[j]
+        if n >= 2:
+            rays = np.array((ax, ay, az)) - self._cams[j, :n]
+            norms = np.sqrt(np.einsum("ij,ij->i", rays, rays))
+            rays = rays[norms > 1e-9] / norms[norms > 1e-9, None]
+            if len(rays) >= 2:  # as stack.evidence.view_angle_deg
+                a = rays[np.argmin(rays @ rays.mean(axis=0))]
+                bb = rays[np.argmin(rays @ a)]
+                angle = math.degrees(math.acos(min(max(float(a @ bb), -1.0), 1.0)))
+        height = clearance = 0.0
+        if self.floor is not None:
+            fn, fd = self.floor
+            height = float(fn[0] * ax + fn[1] * ay + fn[2] * az + fd)
+            clearance = height - self.half[j]
+        span = self.fpr_last[j] - self.fpr_first[j] if self.fpr_n[j] else 0.0
+        o[j, e:e + 5] = (self.fpr_n[j], _bounded(span), angle, _bounded(height), _bounded(clearance))
+
+    def _vote_columns(self) -> None:
+        """Every slot's class-vote share: of the FPR-passing detections of the slots whose anchors lie
+        within ``vote_radius_m`` of its anchor (itself included), the fraction of its class (0 with none)."""
+        used = [j for j in range(self.N) if self.n_dets[j]]
+        if not used:
+            return
+        A = np.array([self.anchor(j) for j in used])
+        w = np.array([self.fpr_n[j] for j in used], dtype=float)
+        c = self.cls[used]
+        diff = A[:, None] - A[None]
+        near = np.einsum("ijk,ijk->ij", diff, diff) < self.evidence.vote_radius_m ** 2
+        total = near @ w
+        same = (near & (c[:, None] == c[None])) @ w
+        share = np.divide(same, total, out=np.zeros_like(total), where=total > 0)
+        self._obs[used, self._ev0 + 5] = share
 
     def _recycle(self) -> int:
         """Free the unlabelled slot seen longest ago (not one of this frame's); -1 if there is none."""
@@ -187,24 +310,37 @@ class SlotMap:
         self.anchor_sum[j] = [0.0, 0.0, 0.0]
         self.n_dets[j] = 0
         self.ev_n[j] = 0
+        self.fpr_n[j] = 0
+        self.n_cams[j] = 0
+        self.half[j] = 0.0
         self._obs[j] = 0.0
         self.recycled += 1
         return j
 
     # --- actions ---------------------------------------------------------------------------------
     def act(self, labels: np.ndarray) -> float:
-        """Apply per-slot actions to the current detections; returns the decrease of the cost."""
+        """Apply per-slot actions (``IGNORE``, ``REPLACE``, ``FUSE`` to the current detections,
+        ``WITHDRAW`` to any slot); returns the decrease of the cost."""
+        labels = labels.tolist() if hasattr(labels, "tolist") else list(labels)
         changed = []
-        if not self._present:
+        if WITHDRAW in labels:
+            for j in sorted(self._labelled):
+                if labels[j] == WITHDRAW:
+                    self._withdraw(j)
+                    changed.append(j)
+        if not self._present and not changed:
             return 0.0
         dets = self.dets
-        labels = labels.tolist() if hasattr(labels, "tolist") else list(labels)
+        published = []
         for j in self._present:
             a = labels[j]
             if a == IGNORE:
                 continue
             i = int(self.cur[j])
-            if a == REPLACE or not self.has[j]:
+            if a == WITHDRAW:
+                if not dets["fpr_list"][i]:
+                    continue
+            elif a == REPLACE:
                 self.ev_n[j] = 0
             n = int(self.ev_n[j])
             if n == self._ev.shape[1]:
@@ -219,65 +355,78 @@ class SlotMap:
                 self.label_belief[j] = dets["belief_list"][i]
             else:
                 self.label[j], self.label_belief[j] = _robust_mean(self._ev[j, :n + 1], self._ev_belief[j, :n + 1])
+            if a == WITHDRAW:
+                self._obs[j, self._lab0 + 4] = math.log1p(self.ev_n[j])
+                continue
             if j not in self._labelled:
                 self.has[j] = True
                 self._labelled.add(j)
-                bisect.insort(self._labelled_by_class.setdefault(int(self.cls[j]), []), j)  # id order, as score_labels
-            changed.append(j)
-        if not changed:
+                bisect.insort(self._labelled_by_class.setdefault(int(self.cls[j]), []), j)  # slot order, as final_score
+            published.append(j)
+        if not changed and not published:
             return 0.0
         o, L = self._obs, self._lab0
-        for j in changed:
+        for j in published:
             lx, ly, lz = self.label[j]
             o[j, L:L + 6] = (1.0, lx, ly, lz, math.log1p(self.ev_n[j]), _bounded(self.label_belief[j]))
+            if self.cur[j] >= 0:
+                x, y, z = dets["xyz_list"][int(self.cur[j])]
+                o[j, L + 6] = math.sqrt((x - lx) ** 2 + (y - ly) ** 2 + (z - lz) ** 2)
         before = self.cost
-        self.cost = self._cost(changed)
+        self.cost = self._cost(changed + published)
         return before - self.cost
+
+    def _withdraw(self, j: int) -> None:
+        """Take slot j's label off the map; its evidence stays (a later FUSE continues from it)."""
+        self.has[j] = False
+        self._labelled.discard(j)
+        self._labelled_by_class[int(self.cls[j])].remove(j)
+        L = self._lab0
+        self._obs[j, L:L + 4] = 0.0
+        self._obs[j, L + 5:L + 7] = 0.0
+        self.withdrawn += 1
 
     # --- cost / score ------------------------------------------------------------------------------
     def _cost(self, changed=()) -> float:
-        """The map's cost, matching objects to labels as ``testbed.run.score_labels`` does: each true
-        object in turn takes the nearest unused label of its class. ``changed``: slots whose label
-        moved since the last call (their column of the distance table is recomputed)."""
-        r = self.reward
-        K = len(self.truth_cls)
-        if not hasattr(self, "_D"):
-            self._D = [[math.inf] * self.N for _ in range(K)]
-            self._truth = self.truth_xyz.tolist()
-            self._truth_cls = self.truth_cls.tolist()
-        D = self._D
+        """The map's cost with the labels matched to objects as ``testbed.scoring.score_map`` does
+        (per class a one-to-one assignment: the most matches within 0.25 m, then the least distance).
+        ``changed``: slots whose label moved, appeared or was withdrawn since the last call; only their
+        column of the distance table and their classes' assignments are recomputed."""
+        D, truth = self._D, self._truth
+        classes = set()
         for j in changed:
-            lx, ly, lz = self.label[j].tolist()
             c = int(self.cls[j])
-            best = math.inf
-            for k in range(K):
-                if self._truth_cls[k] == c:
-                    tx, ty, tz = self._truth[k]
-                    e = math.sqrt((tx - lx) ** 2 + (ty - ly) ** 2 + (tz - lz) ** 2)
-                    best = min(best, e)
-                else:
-                    e = math.inf
-                D[k][j] = e
-            self.label_err[j] = best
-        if not self._labelled:
-            return K * r.missing_cost_m
-        used = set()
-        cost, matched = 0.0, 0
-        by_class = self._labelled_by_class
-        for k in range(K):
-            row = D[k]
-            best, m = math.inf, -1
-            for j in by_class.get(self._truth_cls[k], ()):
-                e = row[j]
-                if e < best and j not in used:
-                    best, m = e, j
-            if m < 0:
-                cost += r.missing_cost_m
+            classes.add(c)
+            if not self.has[j]:
                 continue
-            used.add(m)
-            matched += 1
-            cost += best + (r.false_label_penalty if best > FALSE_LABEL_M else 0.0)
-        return cost + r.extra_label_penalty * (len(self._labelled) - matched)
+            lx, ly, lz = self.label[j].tolist()
+            best = math.inf
+            for k in self._truth_by_class.get(c, ()):
+                tx, ty, tz = truth[k]
+                e = math.sqrt((tx - lx) ** 2 + (ty - ly) ** 2 + (tz - lz) ** 2)
+                D[k][j] = e
+                best = min(best, e)
+            self.label_err[j] = best
+        for c in classes:
+            self._class_cost[c] = self._class_cost_of(c)
+        return float(sum(self._class_cost.values()))
+
+    def _class_cost_of(self, c: int) -> float:
+        r = self.reward
+        objs = self._truth_by_class.get(c, [])
+        labs = self._labelled_by_class.get(c, [])
+        if not labs or not objs:
+            return r.missing_cost_m * len(objs) + r.extra_label_penalty * len(labs)
+        D = self._D
+        if len(objs) == 1 and len(labs) == 1:
+            dists = [D[objs[0]][labs[0]]]
+        else:
+            d = np.array([[D[k][j] for k in objs] for j in labs])
+            rows, cols = linear_sum_assignment(np.where(d <= FALSE_LABEL_M, d, _BEYOND + d))
+            dists = d[rows, cols].tolist()
+        m = len(dists)
+        cost = sum(e + (r.false_label_penalty if e > FALSE_LABEL_M else 0.0) for e in dists)
+        return cost + r.missing_cost_m * (len(objs) - m) + r.extra_label_penalty * (len(labs) - m)
 
     def errors_to_truth(self, xyz: np.ndarray, cls: np.ndarray) -> np.ndarray:
         """Distance of each position to the nearest true object of its class (inf if none)."""
@@ -307,7 +456,7 @@ class SlotMap:
 def with_lists(dets: dict) -> dict:
     """Add ``<name>_list`` Python-list copies of the per-detection columns ``SlotMap`` reads."""
     out = dict(dets)
-    for k in ("cls", "xyz", "fpr", "belief", "range", "err"):
+    for k in ("cls", "xyz", "fpr", "belief", "range", "err", "stamp", "cam", "half"):
         if k in dets:
             out[f"{k}_list"] = np.asarray(dets[k]).tolist()
     return out
