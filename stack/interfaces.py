@@ -1,0 +1,148 @@
+"""What the pipeline (:mod:`stack.pipeline`) needs of each component it joins, as ``typing.Protocol``s.
+
+A component is any object with these methods; it need not inherit from anything. The bundled ones
+satisfy them: :class:`stack.lidar_slam.LidarOdometry` is an :class:`Odometry`,
+:class:`stack.dope_fpr.DopeDetector` a :class:`Detector`, the functions registered in
+:mod:`stack.object_store` (``last``, ``robust-mean``, ...) are :class:`LabellingPolicy`\\ s and the
+harness's loop closing (``testbed/loop_closing.py``) is a :class:`LoopCloser`.
+
+Other people's components are named by import path, ``MODULE:ATTRIBUTE`` (``my_pkg.dets:MyDetector``),
+and loaded with :func:`load_import_path`.
+
+Frames and units as in ``DESIGN.md``: poses are ``T_map_base`` (4x4, ``map`` = ``base_link`` at the
+first registered scan), times are float seconds.
+"""
+from __future__ import annotations
+
+import importlib
+from collections.abc import Sequence
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from stack.messages import CameraFrame, Detection, LidarScan
+from stack.object_store import POLICIES, Label, Observation, register
+
+
+@runtime_checkable
+class Odometry(Protocol):
+    """Robot poses in ``map`` from LiDAR sweeps, given in time order.
+
+    Optional: ``floor_plane_map() -> (n, d) | None``, the floor as a plane in ``map`` (unit normal n
+    up, n.x + d = 0 on the floor); the object store's evidence uses it to reject labels below the
+    floor. Optional: ``last_points_base``, the last sweep's points in ``base_link`` (N, 3), which
+    the pipeline collects into a LiDAR map.
+    """
+
+    def process(self, scan: LidarScan) -> np.ndarray | None:
+        """Register one sweep; ``T_map_base`` of its pose, or None when the sweep was skipped."""
+
+    def pose_at(self, t: float) -> np.ndarray | None:
+        """``T_map_base`` at time ``t`` (interpolated between registered poses), or None where unknown."""
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps (N,), T_map_base (N, 4, 4)) of every registered sweep, in time order."""
+
+
+@runtime_checkable
+class Detector(Protocol):
+    """Objects in a camera image: each :class:`~stack.messages.Detection` has the image's ``stamp``,
+    the class, ``T_cam_obj`` (4x4, camera optical frame: z forward, x right, y down; origin at the
+    cuboid centroid) and its FPR verdict in ``fpr_pass``. ``belief_sum`` is the detection's
+    certainty (lower = more certain; some policies choose by it)."""
+
+    def detect(self, frame: CameraFrame) -> list[Detection]:
+        ...
+
+
+@runtime_checkable
+class LabellingPolicy(Protocol):
+    """A map object's observations (map frame, time order) -> its label, or None when none qualifies
+    (e.g. no observation passed FPR). Registered by name in :mod:`stack.object_store`."""
+
+    def __call__(self, observations: Sequence[Observation]) -> Label | None:
+        ...
+
+
+@runtime_checkable
+class LoopCloser(Protocol):
+    """Rides along the pipeline, then corrects the trajectory at the end and places the map again.
+
+    During the run it sees every registered sweep (``on_scan``, after ``odometry.process``), every
+    image (``on_image``) and every detection fused into the map (``on_fused``). At ``finish`` the
+    pipeline asks it for the corrected trajectory, for the object store built again from the fused
+    detections with the corrected poses (``refuse``, into the fresh store it is given), and for the
+    LiDAR map placed with them (``map_points``).
+    """
+
+    def on_scan(self, odometry: Odometry, T_map_base: np.ndarray | None) -> None: ...
+
+    def on_image(self, frame: CameraFrame) -> None: ...
+
+    def on_fused(self, detection: Detection) -> None: ...
+
+    def finish(self, stamps: np.ndarray, T_map_base: np.ndarray) -> np.ndarray: ...
+
+    def refuse(self, store, pose_at, T_base_cam: np.ndarray): ...
+
+    def map_points(self) -> list[np.ndarray]: ...
+
+
+class ImportPathError(ValueError):
+    """An import path (``MODULE:ATTRIBUTE``) that does not name something loadable; the message says
+    which part is wrong."""
+
+
+def load_import_path(spec: str, what: str = "component"):
+    """The object that ``MODULE:ATTRIBUTE`` names (``ATTRIBUTE`` may be dotted: ``mod:Outer.Inner``).
+
+    Raises :class:`ImportPathError` with a one-line message when the path is malformed, the module
+    cannot be imported or has no such attribute.
+    """
+    module_name, sep, attr = spec.partition(":")
+    if not sep or not module_name or not attr:
+        raise ImportPathError(f"{what} {spec!r}: expected MODULE:ATTRIBUTE, e.g. my_package.detectors:MyDetector")
+    try:
+        obj = importlib.import_module(module_name)
+    except ImportError as e:
+        raise ImportPathError(f"{what} {spec!r}: cannot import module {module_name!r} ({e})") from None
+    except Exception as e:  # the module itself failed while loading: say so on one line
+        raise ImportPathError(f"{what} {spec!r}: importing {module_name!r} failed: "
+                              f"{type(e).__name__}: {e}".splitlines()[0]) from None
+    for part in attr.split("."):
+        if not hasattr(obj, part):
+            raise ImportPathError(f"{what} {spec!r}: module {module_name!r} has no attribute {attr!r}")
+        obj = getattr(obj, part)
+    return obj
+
+
+def load_detector(spec: str) -> Detector:
+    """A detector from ``MODULE:CLASS``: the class is constructed with no arguments and must have
+    ``detect(frame)``. Raises :class:`ImportPathError` (one line) otherwise."""
+    cls = load_import_path(spec, "detector")
+    if not callable(cls):
+        raise ImportPathError(f"detector {spec!r}: {type(cls).__name__} object is not a class")
+    if isinstance(cls, type) and not callable(getattr(cls, "detect", None)):
+        raise ImportPathError(f"detector {spec!r}: class {cls.__name__} has no detect(frame) method")
+    try:
+        detector = cls()
+    except Exception as e:  # a user's constructor: report it on one line rather than a traceback
+        raise ImportPathError(f"detector {spec!r}: constructing it with no arguments failed: "
+                              f"{type(e).__name__}: {e}".splitlines()[0]) from None
+    if not isinstance(detector, Detector):
+        raise ImportPathError(f"detector {spec!r}: {type(detector).__name__} has no detect(frame) method")
+    return detector
+
+
+def resolve_policy(name: str) -> str:
+    """A labelling policy's registered name for ``name``: a registered name as it is, or a
+    ``MODULE:FUNCTION`` loaded and registered under that path. Raises :class:`ImportPathError`."""
+    if name in POLICIES:
+        return name
+    if ":" not in name:
+        raise ImportPathError(f"policy {name!r}: expected one of {sorted(POLICIES)} or MODULE:FUNCTION")
+    fn = load_import_path(name, "policy")
+    if not callable(fn):
+        raise ImportPathError(f"policy {name!r}: {type(fn).__name__} object is not callable")
+    register(name)(fn)
+    return name
