@@ -1,5 +1,5 @@
 """The main job's speed: a whole ``dopeslam run`` episode (default scenario, RGB, 6 stages, FPR) against
-the issue's target of at most 2x real time on these 2 cores, and where the time goes.
+a target of at most 2x real time on these 2 cores, and where the time goes.
 
 Prints, per repeat: simulated seconds, wall seconds, wall / sim (the target is <= 2.0), the split of the
 wall time (simulation incl. rendering, LiDAR odometry, DOPE incl. depth fit and FPR, fusion) and the

@@ -1,4 +1,4 @@
-"""Eleven basic colour names (Berlin and Kay) and the colour-verification step of the second seed's
+"""Eleven basic colour names (Berlin and Kay) and the colour-verification step of the topological-map paper's
 detector (section 3.3): a box's colour-name histogram is compared, by cosine distance, with the
 class's colour model, and detections that do not match are dropped.
 

@@ -24,7 +24,7 @@ Pipeline (paper sections 3.1 and 3.4):
    frames a detection also fails FPR when the depth image does not support its cuboid (step 4's fit
    finds too few consistent pixels): a detection on a column or a wall rarely has the object's shape
    at the object's range.
-6. Colour check (beyond the paper; the second seed's colour-name verification, section 3.3 of
+6. Colour check (beyond the paper; the topological-map paper's colour-name verification, section 3.3 of
    ``001_...``): on lit RGB frames the colour-name histogram of the detected cuboid's silhouette is
    compared (cosine distance) with every class's colour model (``stack/weights/hog_colour.json``, fitted
    on our rendered data). A detection fails FPR when its own class's model is not the closest one

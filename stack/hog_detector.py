@@ -1,7 +1,7 @@
-"""Sliding-window object detector of the second seed (section 3): HOG shape filters, then the
+"""Sliding-window object detector of the topological-map paper (section 3): HOG shape filters, then the
 colour-name verification step (``stack.colour_names``).
 
-What we chose, and why. The seed's iDPM is a deformable part model (root + part filters at twice
+What we chose, and why. The paper's iDPM is a deformable part model (root + part filters at twice
 the resolution, latent SVM, three mixture components) on Felzenszwalb's 31-dimensional HOG, plus a
 colour model. We keep the features (the 31-d HOG: 18 contrast-sensitive + 9 insensitive
 orientations + 4 gradient energies, bilinear cell voting, four block normalisations, truncation at
@@ -10,7 +10,7 @@ linear root filter per component with a linear SVM and hard-negative mining. We 
 filters: our six objects are rigid cuboids whose image footprints are mostly 15-80 px, so parts at
 twice the root resolution would be one or two cells each and deformation has nothing to model,
 while the latent-SVM part training would cost hours of the two shared cores. Said plainly: this is
-a mixture of HOG root filters (Dalal-Triggs / DPM without parts) with the seed's colour step.
+a mixture of HOG root filters (Dalal-Triggs / DPM without parts) with the paper's colour step.
 
 Images are processed at the size the filters were trained at (320 x 240, DOPE's inference size:
 larger frames are area-downscaled first); a feature pyramid with ``levels_per_octave`` levels

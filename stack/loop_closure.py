@@ -3,7 +3,7 @@
 KISS-ICP is odometry only: on a long or looping route its ``T_map_base`` drifts. This module adds
 what RTAB-Map adds on top of odometry:
 
-1. **Key frames.** One camera image in ten (``seeds/001``) becomes a key frame, attached to the next
+1. **Key frames.** One camera image in ten (the topological-map paper) becomes a key frame, attached to the next
    registered LiDAR scan (its deskewed points in ``base_link`` and its odometry pose). Without a
    camera stream, every tenth scan is a LiDAR-only key frame.
 2. **Candidates.** A described key frame queries the vocabulary-tree database

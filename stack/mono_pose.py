@@ -1,6 +1,6 @@
-"""Monocular camera pose from an image sequence (second seed, section 2.2): ORPE and two baselines.
+"""Monocular camera pose from an image sequence (the topological-map paper, section 2.2): ORPE and two baselines.
 
-The pipeline (the seed's steps 1-7):
+The pipeline (the paper's steps 1-7):
 
 1. Initialise with the first two key frames and the distance between them (the "given baseline"):
    eight-point essential matrix in RANSAC, decomposition, cheirality; triangulated points fix the
@@ -9,13 +9,13 @@ The pipeline (the seed's steps 1-7):
    (L2-normalised), matched to the last key frame inside a search region (0.08 x max(width,
    height)), descriptor distance below 0.4, one-to-one. Frames matching below 20 % are discarded.
 3. Pose from the matches whose 3D point is known, by one of three estimators:
-   - ``orpe`` (the seed's method): ONE RANSAC. Each hypothesis: eight sampled matches -> essential
+   - ``orpe`` (the paper's method): ONE RANSAC. Each hypothesis: eight sampled matches -> essential
      matrix (our own eight-point) -> its four (R, t-direction) decompositions; the translation's
      length from each of four sampled points with known 3D (collinearity of the bearing with
      ``R X + s t``), i.e. 16 translation distances; the hypothesis with the most reprojection
      inliers (< 2 px) wins. Adaptive stopping at 99 % confidence. (For speed each batch of
      hypotheses is first scored on 24 random points and only the best four on all of them.)
-   - ``trpe`` (Wu's two-RANSAC method, the seed's foil): RANSAC 1 finds the best essential matrix
+   - ``trpe`` (Wu's two-RANSAC method, the paper's foil): RANSAC 1 finds the best essential matrix
      from all 2D-2D matches (Sampson error), its (R, t-direction) chosen by cheirality; RANSAC 2
      then finds the translation's length from single 3D points. When the essential matrix is
      degenerate (small baseline, near-planar structure) RANSAC 2 has nothing right to scale.
@@ -33,7 +33,7 @@ inverse. World = the first key frame's camera optical frame, scaled by the given
 
 One deviation from the seed, said here: the search region is centred where a pure rotation at the
 last frame-to-frame rotation rate would move the feature (the KITTI car turned ~2 deg per frame,
-the Jackal turns up to 8 deg per 10-Hz frame, which would leave the seed's region).
+the Jackal turns up to 8 deg per 10-Hz frame, which would leave the paper's region).
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Place recognition over camera key frames: a vocabulary tree of SIFT words with TF-IDF retrieval.
 
-The method of ``seeds/001`` (section 2.1): a key frame (one image in ten) is blurred (Gaussian), its
+The method of the topological-map paper (section 2.1): a key frame (one image in ten) is blurred (Gaussian), its
 Shi-Tomasi corners are found and described by SIFT descriptors (L2-normalised); the descriptors are
 quantised by a vocabulary tree built by hierarchical k-means (Nister & Stewenius); each leaf is a
 visual word with an inverted file (the key frames it occurs in); a query is scored against the

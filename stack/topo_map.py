@@ -1,4 +1,4 @@
-"""The second seed's semantic topological map (sections 2-3.4): nodes are key frames (visual words,
+"""The topological-map paper's semantic topological map (sections 2-3.4): nodes are key frames (visual words,
 pose, object attributes), edges carry relative poses; built from a monocular image stream, saved
 and loaded, used to localise by retrieval and to plan to the node holding an object.
 
@@ -168,7 +168,7 @@ class TopoMap:
         return found[0][0] if found else None
 
     def semantic_matrix(self) -> list[dict]:
-        """The seed's Table 1: per node its visual words, object attributes and pose."""
+        """The paper's Table 1: per node its visual words, object attributes and pose."""
         from stack.transforms import to_xyz_quat
 
         rows = []

@@ -131,7 +131,7 @@ class LoopClosingRun:
 
 
 # ---------------------------------------------------------------------------------------------
-# LiDAR odometry + loop closure on a scenario, without DOPE: the trajectory figures of issue 9
+# LiDAR odometry + loop closure on a scenario, without DOPE: the trajectory figures
 
 
 def key_frame_scenario(scenario, config: LoopClosureConfig | None = None):

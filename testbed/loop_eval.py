@@ -1,6 +1,6 @@
-"""The place-recognition evaluation of ``seeds/001`` (section 4.1, Figure 11), on a route driven twice.
+"""The place-recognition evaluation of the topological-map paper (section 4.1, Figure 11), on a route driven twice.
 
-Protocol (as in the seed's Lab experiment): the robot drives the same closed loop twice; the key frames
+Protocol (as in the paper's Lab experiment): the robot drives the same closed loop twice; the key frames
 (one image in ten) of the first lap form the database, and each key frame of the second lap is a query
 that should retrieve the database image of the same place. By default the vocabulary tree is built from
 the first lap's key frames, as the seed did; ``vocabulary=`` may name a tree trained elsewhere.

@@ -6,7 +6,7 @@ Reduced route (the full one is ~250 s): out along the south corridor, back in th
 light (the same view as the first pass: retrieval can close it). Sensors are thinned (LiDAR columns,
 camera at the key-frame rate, physics at 120 Hz) to keep the test near a minute on a shared two-core
 machine. The
-vocabulary tree is trained on the first pass's key frames (the seed's protocol), so the test needs no
+vocabulary tree is trained on the first pass's key frames (the paper's protocol), so the test needs no
 cached vocabulary.
 """
 import numpy as np

@@ -1,4 +1,4 @@
-"""Record and replay (issue 7): a live run recorded while it runs, replayed offline in passes, gives the
+"""Record and replay: a live run recorded while it runs, replayed offline in passes, gives the
 same results; other clients read our bags; the stack runs on a bag our recorder did not write.
 
 One short episode (8 s, 320x240 camera, the default scene with the robot started near the objects)

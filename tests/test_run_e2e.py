@@ -73,7 +73,7 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys)
     assert report["odometry"]["ate_rmse_m"] < 0.05
     s = report["labels_summary"]
     assert s["objects"] == 6
-    # The target for the default scenario (all labelled, no false label, mean <= 10 cm) on this
+    # The target for the default scenario (all labelled, no false label, mean <= 10 cm) on this
     # short drive past all six (seeds 3 and 4 measured 1.9 and 1.7 cm); a broken transform chain, pose
     # lookup or FPR puts labels metres off or lets a wrong-class detection label an object.
     assert s["labelled"] == 6, report["labels"]

@@ -1,4 +1,4 @@
-"""Colour names (eleven basic colours) and the colour-verification step of the second seed's detector."""
+"""Colour names (eleven basic colours) and the colour-verification step of the topological-map paper's detector."""
 import json
 
 import numpy as np

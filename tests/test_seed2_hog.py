@@ -1,4 +1,4 @@
-"""The second seed's detector: 31-d HOG, root-filter SVM training with hard negatives, the colour step."""
+"""The topological-map paper's detector: 31-d HOG, root-filter SVM training with hard negatives, the colour step."""
 import numpy as np
 import pytest
 

@@ -1,4 +1,4 @@
-"""Monocular pose (second seed, section 2.2): the eight-point essential matrix, the translation's
+"""Monocular pose (the topological-map paper, section 2.2): the eight-point essential matrix, the translation's
 length from one known point, ORPE, Grunert's P3P and TRPE on synthetic correspondences."""
 import cv2
 import numpy as np

@@ -1,4 +1,4 @@
-"""The second seed's navigation end to end (short): a 1.6 m mapping drive at 320 x 240, its
+"""The topological-map paper's navigation end to end (short): a 1.6 m mapping drive at 320 x 240, its
 topological map, then a fresh episode that localises by retrieval and drives to the last node."""
 import json
 from pathlib import Path

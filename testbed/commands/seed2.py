@@ -1,4 +1,4 @@
-"""The second seed's system: ``dopeslam navigate OBJECT [SCENARIO] --out DIR --seed N`` and
+"""The topological-map paper's system: ``dopeslam navigate OBJECT [SCENARIO] --out DIR --seed N`` and
 ``dopeslam compare [SCENARIO] --out DIR``."""
 from __future__ import annotations
 

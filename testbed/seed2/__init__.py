@@ -1,3 +1,3 @@
-"""The second seed's system (monocular semantic topological map) run in the testbed's episodes:
+"""The topological-map paper's system (monocular semantic topological map) run in the testbed's episodes:
 cached camera streams, pose-estimation evaluation, detector training and evaluation, navigation,
 and the side-by-side comparison with DOPESLAM."""

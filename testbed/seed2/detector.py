@@ -1,10 +1,10 @@
-"""Train and evaluate the second seed's colour-verified HOG detector (``stack.hog_detector``).
+"""Train and evaluate the topological-map paper's colour-verified HOG detector (``stack.hog_detector``).
 
 Training data: the DOPE data shards (``sim.datagen``: our renderer, domain-randomised rooms, the six
 objects), shards with index % 5 != 4; held out for testing: index % 5 == 4. Boxes are the tight
 visible boxes from the shards' segmentation.
 
-Evaluation (the seed's Figure 20 / Table 4): PASCAL VOC protocol per class: a detection is correct
+Evaluation (the paper's Figure 20 / Table 4): PASCAL VOC protocol per class: a detection is correct
 when its IoU with an unclaimed true box of its class is >= 0.5; true boxes that are small (< 16 px
 tall at 320 x 240) or mostly hidden (< 50 % visible) are "difficult" (neither missed nor false when
 detected); AP is the area under the interpolated precision-recall curve (all points). With the

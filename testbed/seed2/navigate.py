@@ -1,4 +1,4 @@
-"""``dopeslam navigate OBJECT [SCENARIO] --out DIR --seed N``: the second seed's navigation (its
+"""``dopeslam navigate OBJECT [SCENARIO] --out DIR --seed N``: the topological-map paper's navigation (its
 section 4.4) in the simulator, as teach and repeat over the topological map.
 
 1. The map (the teach run): the scenario's scripted drive (its own seed, lit); its camera stream
@@ -8,7 +8,7 @@ section 4.4) in the simulator, as teach and repeat over the topological map.
    mapping run's dead reckoning is kept beside it (``teach_odometry``: the wheels' travel, the
    gyro's heading).
 2. The navigation run (the repeat): a fresh episode of the same scenario whose start pose is
-   perturbed by the seed (up to +-0.15 m, +-8 deg) and whose sensor noise is the seed's. The robot
+   perturbed by the seed (up to +-0.15 m, +-8 deg) and whose sensor noise is the paper's. The robot
    software sees the camera, its wheel odometry and its gyro only:
    - localise by retrieval (vocabulary tree -> candidate nodes, verified by ORPE against a node's
      points), the first candidate along the mapping run that verifies;

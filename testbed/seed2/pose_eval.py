@@ -1,10 +1,10 @@
 """Monocular pose estimation on the bundled scenarios' camera streams: ORPE vs Grunert (P3P) vs TRPE,
-as in the second seed's section 4.2.
+as in the topological-map paper's section 4.2.
 
 * Span: from the first image where the robot moves, ``SPANS[scenario]`` images (the seed used KITTI
   frames 40-120); the whole moving part is also run once per method to say where each loses track.
 * Initialisation: the first and the 20th image of the span with the true distance between them
-  (the seed's "given baseline").
+  (the paper's "given baseline").
 * Table 2 (without bundle adjustment): ``--runs`` runs per method with different RANSAC seeds on
   the same images; a run fails when five consecutive images get no pose; the absolute error is
   the distance between the last true and the last estimated camera position (world, with the
