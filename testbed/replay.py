@@ -33,6 +33,7 @@ from stack.lidar_slam import LidarOdometry, LidarOdometryConfig, WheelOdometryTr
 from stack.messages import CameraFrame, Detection
 from stack.metrics import write_tum
 from stack.object_store import ObjectStore, Observation
+from stack.pipeline import MAP_EVERY, MAP_POINT_STRIDE  # as the live run: the same LiDAR map picture
 from stack.transforms import transform_points
 from testbed.bags import BagReader, MissingTopicError
 from testbed.bags import topics as T
@@ -42,9 +43,6 @@ from testbed.scoring import summary_line
 from testbed.simulate import write_json
 
 log = logging.getLogger(__name__)
-
-MAP_EVERY = 5  # as the live run: every 5th registered scan goes into the map picture ...
-MAP_POINT_STRIDE = 4  # ... with every 4th of its points
 
 
 @dataclass

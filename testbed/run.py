@@ -1,9 +1,12 @@
-"""``dopeslam run``: the main job. The simulated frames go to the stack in time order, as on a robot:
-LiDAR -> odometry; images -> DOPE -> FPR -> fusion (HTM chain at the image's time) -> object store.
-Then everything is scored against the simulator's ground truth.
+"""``dopeslam run``: the main job. The simulator is the message source; the stack's pipeline
+(:class:`stack.pipeline.DopeSlam`) gets the frames in time order, as on a robot: LiDAR -> odometry;
+images -> DOPE -> FPR -> fusion (HTM chain at the image's time) -> object store. Then everything is
+scored against the simulator's ground truth: each image's detections as the pipeline returns them,
+the trajectory and the map at the end.
 
 Images wait until the odometry has a pose after their timestamp (the next LiDAR sweep), so each is
-fused with an interpolated pose, never an extrapolated one (except at the very end of the episode).
+fused with an interpolated pose, never an extrapolated one (except at the very end of the episode):
+the pipeline's rule, see ``stack/pipeline.py``.
 """
 from __future__ import annotations
 
@@ -14,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from stack.fusion import fuse
-from stack.lidar_slam import LidarOdometry, WheelOdometryTrack
-from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
+from stack.lidar_slam import LidarOdometry
+from stack.messages import CameraFrame, Detection
 from stack.metrics import ate_rmse, ate_rmse_umeyama, rpe, write_tum
 from stack.object_store import ObjectStore
-from stack.transforms import inv, transform_points
+from stack.pipeline import DopeSlam
+from stack.transforms import transform_points
 from testbed.scoring import FALSE_LABEL_M, score_map, summary_line  # noqa: F401 (FALSE_LABEL_M re-exported)
 from testbed.simulate import write_json
 
@@ -108,14 +111,27 @@ def make_detector(input_mode: str, stages: int, fpr: bool, weights=None):
     return DopeDetector(weights=weights, input=input_mode, stages=stages, fpr=fpr, dims=dims)
 
 
+def detector_name(detector) -> str:
+    """``module:Class`` of a detector, for the report."""
+    cls = type(detector)
+    return f"{cls.__module__}:{cls.__qualname__}"
+
+
 def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_mode="rgb", stages=6, fpr=True,
                 policy="robust-mean", duration=None, weights=None, detector=None, dope_every: int = 1,
                 write_outputs: bool = True, keep_detections: bool = False, bag_writer=None,
                 results_bag=None, loop_closure: bool = False) -> dict:
-    """``bag_writer``: an open ``testbed.bags.BagWriter`` that records the episode as it runs
-    (``testbed/record.py``); ``results_bag``: where the results bag goes (default OUT/results_bag).
-    ``loop_closure``: key frames and scans also go to a loop closer (``testbed/loop_closing.py``); at the
-    end the trajectory is corrected and every fused detection is fused again with it."""
+    """One simulated episode through the stack's pipeline (:class:`stack.pipeline.DopeSlam`), scored.
+
+    ``detector``: any :class:`stack.interfaces.Detector` (default: DOPE + FPR for ``input_mode``,
+    ``stages``, ``fpr``, ``weights``); one with ``bind_episode(ep)`` is given the episode before the
+    first frame (a detector that needs the simulator's truth, e.g. ``testbed.oracle_detector``).
+    ``policy``: a registered labelling policy's name (``stack.interfaces.resolve_policy`` registers
+    a ``MODULE:FUNCTION``). ``bag_writer``: an open ``testbed.bags.BagWriter`` that records the
+    episode as it runs (``testbed/record.py``); ``results_bag``: where the results bag goes (default
+    OUT/results_bag). ``loop_closure``: key frames and scans also go to a loop closer
+    (``testbed/loop_closing.py``); at the end the trajectory is corrected and every fused detection
+    is fused again with it."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
@@ -130,107 +146,66 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             from testbed.record import EpisodeRecorder
 
             recorder = EpisodeRecorder(bag_writer, ep)
-        odom = LidarOdometry(ep.T_base_velodyne)
+        if callable(getattr(detector, "bind_episode", None)):
+            detector.bind_episode(ep)
         lc = None
         if loop_closure:
             from testbed.loop_closing import LoopClosingRun
 
             lc = LoopClosingRun()
-        wheel = WheelOdometryTrack()
-        store = ObjectStore(dims=dims, policy=policy)
-        T_base_cam = ep.T_base_camera
+        odom = LidarOdometry(ep.T_base_velodyne)
+        pipe = DopeSlam(odom, detector, ep.T_base_camera, dims, policy, loop_closer=lc, detect_every=dope_every,
+                        keep_observations=keep_detections)
         dlog = DetectionLog()
-        pending: list[Detection] = []
         all_dets: list[tuple[Detection, bool]] = []
-        observations = []  # every fused detection, map frame (kept for experiments)
-        map_points: list[np.ndarray] = []
-        timing = {"simulation": 0.0, "odometry": 0.0, "dope": 0.0, "fusion": 0.0}
+        simulation_s = 0.0
         t_last = time.perf_counter()
         last_log = t_last
-        n_cam = 0
-
-        def flush(upto: float | None) -> None:
-            keep = []
-            for det in pending:
-                if upto is not None and det.stamp > upto:
-                    keep.append(det)
-                    continue
-                pose = odom.pose_at(det.stamp)
-                if pose is None:
-                    continue
-                obs = fuse(det, odom.pose_at, T_base_cam)
-                store.add(obs)
-                if lc is not None:
-                    lc.on_fused(det)
-                if keep_detections:
-                    observations.append(obs)
-            pending[:] = keep
 
         for msg in ep.frames():
-            now = time.perf_counter()
-            timing["simulation"] += now - t_last
+            simulation_s += time.perf_counter() - t_last
             truths = None
-            if isinstance(msg, LidarScan):
-                pose = odom.process(msg)
-                t1 = time.perf_counter()
-                timing["odometry"] += t1 - now
-                if pose is not None and len(odom) % 5 == 1 and odom.last_points_base is not None:
-                    map_points.append(transform_points(pose, odom.last_points_base[::4]))
-                if lc is not None:
-                    lc.on_scan(odom, pose)
-                if len(odom):
-                    flush(odom.trajectory()[0][-1])
-                timing["fusion"] += time.perf_counter() - t1
-            elif isinstance(msg, CameraFrame):
-                if lc is not None:
-                    lc.on_image(msg)
-                if n_cam % dope_every == 0:
-                    dets = detector.detect(msg)
-                    t1 = time.perf_counter()
-                    timing["dope"] += t1 - now
-                    dlog.seconds += t1 - now
+            if isinstance(msg, CameraFrame):
+                dets = pipe.on_image(msg)
+                if dets is not None:  # scored here: the truth is the simulator's, not the stack's
                     dlog.frames += 1
                     truths = ep.image_truth(msg)
                     flags = score_detections(dlog, dets, truths)
                     if keep_detections:
                         all_dets.extend(zip(dets, flags))
-                    pending.extend(dets)
-                n_cam += 1
-            elif isinstance(msg, WheelOdometry):
-                wheel.add(msg)
+            else:
+                pipe.on_message(msg)
             if recorder is not None:
                 recorder.write(msg, truths)
             t_last = time.perf_counter()
             if t_last - last_log > 15:
                 last_log = t_last
                 log.info("t = %5.1f s of %.0f s: %d scans, %d images, %d map objects", msg.stamp, ep.duration,
-                         len(odom), dlog.frames, len(store))
-        flush(None)
+                         len(odom), dlog.frames, len(pipe.store))
+        result = pipe.finish()
+        dlog.seconds = pipe.timing["detection"]
+        timing = {"simulation": simulation_s, "odometry": pipe.timing["odometry"], "dope": pipe.timing["detection"],
+                  "fusion": pipe.timing["fusion"]}
         if recorder is not None:
             recorder.finish()
             timing["recording"] = recorder.seconds
         wall = time.perf_counter() - wall0
-        stamps, poses = odom.trajectory()
+        store, stamps, poses, map_points = result.store, result.stamps, result.T_map_base, result.map_points
         T_world_map = ep.T_world_base_at(stamps[0])  # map = base_link at the first registered scan
-        if lc is not None:  # the closed-loop trajectory replaces the odometry's; labels are placed again
-            poses_odom, poses = poses, lc.finish(stamps, poses)
-            store = lc.refuse(ObjectStore(dims=dims, policy=policy), odom.pose_at, T_base_cam)
-            map_points = lc.map_points()
         odo = score_trajectory(stamps, poses, ep, T_world_map)
-        if lc is not None:
-            odo.update(lc.summary(stamps, poses_odom, poses, T_world_map, ep.T_world_base_at))
+        if lc is not None:  # the closed-loop trajectory replaced the odometry's; labels were placed again
+            odo.update(lc.summary(stamps, result.T_map_base_odometry, poses, T_world_map, ep.T_world_base_at))
         odo["odometry_hz"] = odom.stats.hz if hasattr(odom.stats, "hz") else None
-        ws, wp = wheel.trajectory()
-        T_world_odom0 = ep.T_world_base_at(ws[0])
-        wheel_score = score_trajectory(ws, wp, ep, T_world_odom0)
-        store.floor = odom.floor_plane_map()
-        store.publish()
+        T_world_odom0 = ep.T_world_base_at(result.wheel_stamps[0])
+        wheel_score = score_trajectory(result.wheel_stamps, result.T_odom_base, ep, T_world_odom0)
         labels, labels_summary = score_labels(store, ep.objects, T_world_map)
         report = {
             "scenario": ep.sc.name, "seed": ep.seed, "light": ep.light, "input": input_mode, "stages": stages,
-            "fpr": fpr, "policy": policy, "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
+            "fpr": fpr, "policy": policy, "detector": detector_name(detector),
+            "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
             "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,
-            "odometry": odo, "wheel_odometry": wheel_score, "detection": dlog.summary(),
+            "odometry": odo, "wheel_odometry": wheel_score,
+            "detection": {**dlog.summary(), "detections_without_pose": result.unposed},
             "labels": labels, "labels_summary": labels_summary,
             "candidates": candidate_rows(store, T_world_map),
             "map_floor": None if store.floor is None else {"normal": [float(v) for v in store.floor[0]],
@@ -250,7 +225,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         if keep_detections:
             report["_detections"] = all_dets
             report["_store"] = store
-            report["_observations"] = observations
+            report["_observations"] = result.observations
             report["_T_world_map"] = T_world_map
             report["_objects"] = list(ep.objects)
         return report

@@ -1,4 +1,5 @@
-"""``dopeslam run [SCENARIO] --out DIR --seed N [--light L] [--input rgb|depth] [--stages 1-6] [--fpr/--no-fpr] [--policy NAME]``."""
+"""``dopeslam run [SCENARIO] --out DIR --seed N [--light L] [--input rgb|depth] [--stages 1-6] [--fpr/--no-fpr]
+[--policy NAME|MODULE:FUNCTION] [--detector MODULE:CLASS]``."""
 from __future__ import annotations
 
 import argparse
@@ -22,7 +23,14 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--light", type=float, default=None, help="override the scenario's light level (0-1)")
     p.add_argument("--duration", type=float, default=None)
-    p.add_argument("--policy", default="robust-mean", help="labelling policy: last, last-fpr, best-score, robust-mean, ...")
+    p.add_argument("--policy", default="robust-mean",
+                   help="labelling policy: last, last-fpr, best-score, robust-mean, ..., or MODULE:FUNCTION "
+                        "(observations -> stack.object_store.Label or None)")
+    p.add_argument("--detector", default=None, metavar="MODULE:CLASS",
+                   help="your detector instead of DOPE: a class constructed with no arguments, with "
+                        "detect(frame) -> list[Detection] (stack.interfaces.Detector); --input, --stages, "
+                        "--fpr and --weights then do not apply. Ground truth: "
+                        "testbed.oracle_detector:OracleDetector")
     p.add_argument("--loop-closure", action="store_true",
                    help="close loops (vocabulary tree + LiDAR verification + pose graph); labels move with them")
     add_dope_options(p)
@@ -37,13 +45,19 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from stack.object_store import POLICIES
+    import sys
+
+    from stack.interfaces import ImportPathError, load_detector, resolve_policy
     from testbed.run import print_summary, run_episode
 
-    if args.policy not in POLICIES:
-        raise SystemExit(f"--policy: expected one of {sorted(POLICIES)}, got {args.policy!r}")
+    try:
+        policy = resolve_policy(args.policy)
+        detector = load_detector(args.detector) if args.detector else None
+    except ImportPathError as e:
+        print(f"dopeslam run: --{e}", file=sys.stderr)  # "--detector 'x:Y': what is wrong"
+        return 2
     report = run_episode(args.scenario, args.out, args.seed, args.light, args.input_mode, args.stages, args.fpr,
-                         args.policy, args.duration, args.weights, loop_closure=args.loop_closure)
+                         policy, args.duration, args.weights, detector=detector, loop_closure=args.loop_closure)
     print_summary(report)
     print(f"wrote {args.out}/report.json, labels.xlsx, map.png, estimate_tum.txt, groundtruth_tum.txt")
     return 0

@@ -1,0 +1,215 @@
+"""Seams for other people's components: the bundled parts satisfy the protocols of ``stack.interfaces``;
+a detector or a labelling policy named by import path (``MODULE:ATTRIBUTE``) is loaded and runs through
+the pipeline; a bad path is one line and exit status 2; ``stack/`` never imports the simulator or the
+harness; the ground-truth detector is the upper bound of ``dopeslam run``."""
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stack.interfaces import (Detector, ImportPathError, LabellingPolicy, LoopCloser, Odometry, load_detector,
+                              load_import_path, resolve_policy)
+from stack.object_store import POLICIES, Label, Observation
+from stack.pipeline import DopeSlam
+from test_pipeline import DIMS, T_BASE_CAM, LineOdometry, expected_xyz, image, scan
+from test_run_e2e import short_scenario  # noqa: F401 (a fixture)
+from testbed.cli import main
+
+STACK = Path(__file__).resolve().parents[1] / "stack"
+
+
+# --- the bundled parts satisfy the protocols -----------------------------------------------------------
+
+def test_the_lidar_odometry_is_an_odometry():
+    from stack.lidar_slam import LidarOdometry
+
+    odom = LidarOdometry(np.eye(4))
+    assert isinstance(odom, Odometry)
+    assert odom.pose_at(0.0) is None and odom.trajectory()[0].shape == (0,) and odom.floor_plane_map() is None
+
+
+def test_dope_and_the_ground_truth_detector_are_detectors():
+    from sim.objects import load_catalog
+    from stack.dope_fpr import DopeDetector
+    from testbed.oracle_detector import OracleDetector
+
+    assert isinstance(DopeDetector(dims={c: s.dims for c, s in load_catalog().items()}), Detector)
+    assert isinstance(OracleDetector(), Detector)
+    assert not isinstance(object(), Detector)
+
+
+def test_every_registered_policy_is_a_labelling_policy():
+    obs = [Observation(0.1 * k, "Yogurt", np.array([1.0, 0.01 * k, 0.0]), np.array([0, 0, 0, 1.0]), 1.0)
+           for k in range(3)]
+    assert len(POLICIES) >= 5
+    for name, policy in POLICIES.items():
+        assert isinstance(policy, LabellingPolicy), name
+        label = policy(obs)
+        assert isinstance(label, Label) and label.xyz.shape == (3,), name
+        assert policy([]) is None, name
+
+
+def test_the_harness_loop_closing_is_a_loop_closer():
+    from testbed.loop_closing import LoopClosingRun
+
+    assert issubclass(LoopClosingRun, LoopCloser)
+
+
+# --- stack/ knows nothing of the simulator or the harness ---------------------------------------------
+
+IMPORT_OF_SIM_OR_TESTBED = re.compile(r"^\s*(from|import)\s+(sim|testbed)(\.|\s|$)", re.MULTILINE)
+NAMED_IN_A_STRING = re.compile(r"""import_module\(\s*['"](sim|testbed)\b""")
+
+
+def test_no_module_under_stack_imports_sim_or_testbed():
+    offenders = []
+    for path in sorted(STACK.rglob("*.py")):
+        text = path.read_text()
+        for m in list(IMPORT_OF_SIM_OR_TESTBED.finditer(text)) + list(NAMED_IN_A_STRING.finditer(text)):
+            line = text.count("\n", 0, m.start()) + 1
+            offenders.append(f"{path.relative_to(STACK.parent)}:{line}: {text.splitlines()[line - 1].strip()}")
+    assert not offenders, "stack/ must not import the simulator or the harness:\n" + "\n".join(offenders)
+
+
+def test_importing_every_stack_module_loads_neither_sim_nor_testbed():
+    modules = sorted("stack." + ".".join(p.relative_to(STACK).with_suffix("").parts)
+                     for p in STACK.rglob("*.py") if p.name != "__init__.py")
+    code = textwrap.dedent(f"""
+        import importlib, sys
+        for name in {modules!r}:
+            importlib.import_module(name)
+        bad = sorted(m for m in sys.modules if m.split('.')[0] in ('sim', 'testbed'))
+        print(','.join(bad))
+    """)
+    res = subprocess.run([sys.executable, "-c", code], cwd=STACK.parent, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "", f"importing stack/ loaded {res.stdout.strip()}"
+
+
+# --- other people's components, named by import path --------------------------------------------------
+
+USER_MODULE = '''
+import numpy as np
+from stack.messages import Detection
+
+class MustardAhead:
+    """A user's detector: one Mustard 1 m ahead of the camera in every image."""
+    def detect(self, frame):
+        T = np.eye(4)
+        T[2, 3] = 1.0
+        return [Detection("Mustard", frame.stamp, T, np.zeros((9, 2)), np.ones(9), 2.0)]
+
+class NoDetect:
+    pass
+
+class NeedsArguments:
+    def __init__(self, weights):
+        self.weights = weights
+    def detect(self, frame):
+        return []
+
+def first_observation(observations):
+    """A user's labelling policy: the first observation is the label."""
+    from stack.object_store import Label
+    o = observations[0] if observations else None
+    return None if o is None else Label(o.xyz.copy(), o.quat_xyzw.copy(), o.belief_sum)
+'''
+
+
+@pytest.fixture
+def user_module(tmp_path, monkeypatch):
+    (tmp_path / "user_parts.py").write_text(USER_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield "user_parts"
+    sys.modules.pop("user_parts", None)
+
+
+def test_a_user_detector_loaded_by_import_path_runs_through_the_pipeline(user_module):
+    detector = load_detector(f"{user_module}:MustardAhead")
+    assert isinstance(detector, Detector)
+    pipe = DopeSlam(LineOdometry(), detector, T_BASE_CAM, DIMS)
+    pipe.on_scan(scan(0.0))
+    dets = pipe.on_image(image(0.08))
+    pipe.on_scan(scan(0.1))
+    store = pipe.finish().store
+    assert [d.cls for d in dets] == ["Mustard"]
+    (obj,) = store
+    assert obj.cls == "Mustard"
+    np.testing.assert_allclose(obj.xyz, expected_xyz(0.08), atol=1e-12)
+
+
+def test_a_user_policy_loaded_by_import_path_labels_the_store(user_module):
+    name = resolve_policy(f"{user_module}:first_observation")
+    assert name == f"{user_module}:first_observation" and POLICIES[name].__name__ == "first_observation"
+    try:
+        pipe = DopeSlam(LineOdometry(), load_detector(f"{user_module}:MustardAhead"), T_BASE_CAM, DIMS, policy=name)
+        pipe.on_scan(scan(0.0))
+        for t in (0.06, 0.1, 0.14):
+            pipe.on_image(image(t))
+        pipe.on_scan(scan(0.1))
+        (obj,) = pipe.finish().store
+        np.testing.assert_allclose(obj.xyz, expected_xyz(0.06), atol=1e-12)  # the first, not the mean
+        assert resolve_policy("robust-mean") == "robust-mean"
+    finally:
+        POLICIES.pop(name, None)
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("user_parts", "expected MODULE:ATTRIBUTE"),
+    ("no_such_module_here:Detector", "cannot import module 'no_such_module_here'"),
+    ("user_parts:Missing", "module 'user_parts' has no attribute 'Missing'"),
+    ("user_parts:NoDetect", "class NoDetect has no detect(frame) method"),
+    ("user_parts:NeedsArguments", "constructing it with no arguments failed: TypeError"),
+])
+def test_a_bad_detector_path_is_one_line_and_exit_status_2(user_module, spec, message, capsys):
+    with pytest.raises(ImportPathError, match=re.escape(message)):
+        load_detector(spec)
+    assert main(["run", "--detector", spec, "--out", "unused"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"dopeslam run: --detector {spec!r}: ") and message in err and "\n" not in err
+
+
+def test_a_bad_policy_is_one_line_and_exit_status_2(user_module, capsys):
+    assert main(["run", "--policy", "no-such-policy", "--out", "unused"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "expected one of" in err and "MODULE:FUNCTION" in err and "\n" not in err
+    assert main(["run", "--policy", f"{user_module}:nothing", "--out", "unused"]) == 2
+    assert "has no attribute 'nothing'" in capsys.readouterr().err
+
+
+def test_a_module_that_fails_while_importing_is_reported_on_one_line(tmp_path, monkeypatch):
+    (tmp_path / "broken_parts.py").write_text("raise RuntimeError('weights not found\\nsecond line')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ImportPathError) as e:
+        load_import_path("broken_parts:Thing", "detector")
+    assert "RuntimeError: weights not found" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_the_ground_truth_detector_needs_its_episode():
+    from testbed.oracle_detector import OracleDetector
+
+    with pytest.raises(RuntimeError, match="bind_episode"):
+        OracleDetector().detect(image(0.0))
+
+
+# --- the upper bound: dopeslam run with the ground-truth detector -------------------------------------
+
+@pytest.mark.slow
+def test_the_ground_truth_detector_puts_every_label_within_2_cm(short_scenario, tmp_path):  # noqa: F811
+    out = tmp_path / "oracle"
+    assert main(["run", str(short_scenario), "--detector", "testbed.oracle_detector:OracleDetector",
+                 "--out", str(out), "--seed", "3"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    s = report["labels_summary"]
+    assert report["detector"] == "testbed.oracle_detector:OracleDetector"
+    assert s["labelled"] == 6 and s["false_labels"] == 0, s["map_labels"]
+    errors = [r["error_m"] for r in report["labels"]]
+    assert max(errors) < 0.02, errors
+    assert report["detection"]["precision"] == 1.0
