@@ -181,7 +181,11 @@ def test_each_baseline_runs_a_short_episode(cache, name):
     s = r["summary"]
     assert r["steps"] == replay.n_frames
     assert s["objects"] == 6 and s["labelled"] + s["missing"] == 6
-    assert s["labelled"] >= 4  # the drive passes every column; the double sees what is within 3 m
+    # the drive passes every column and the double sees what is within 3 m: most objects get a label of
+    # their class (correct, but for the worst detections, most of which are misplaced)
+    assert s["correct_labels"] + s["misplaced"] >= 4
+    if name != "oracle-worst":
+        assert s["labelled"] >= 4
     # the return telescopes: initial cost (all missing) less the final cost
     assert r["return"] == pytest.approx(6 * RewardConfig().missing_cost_m - s["final_cost"])
     assert s["labels_in_map"] == s["correct_labels"] + s["misplaced"] + s["phantom"]

@@ -192,12 +192,10 @@ def targets(groups: dict, scenarios: list[str]) -> dict:
 
 
 def paper_reference() -> dict | None:
-    """The paper's Table 2 figures, when the shared reference file is beside the checkout."""
-    here = Path(__file__).resolve()
-    for parent in here.parents:
-        p = parent / "shared" / "reference" / "paper_results.json"
-        if p.exists():
-            return json.loads(p.read_text()).get("experiment_3_localization")
+    """The paper's Table 2 figures (``testbed/experiments/paper_results.json``, shipped with the package)."""
+    p = Path(__file__).resolve().parents[1] / "experiments" / "paper_results.json"
+    if p.exists():
+        return json.loads(p.read_text()).get("experiment_3_localization")
     return None
 
 

@@ -24,7 +24,8 @@ The policy then decides per slot what the current detection does to that slot's 
 Each slot also carries its evidence as ``stack.evidence`` defines it (``EvidenceConfig``: what an
 object needs before the stack publishes it), from the slot's detections, whatever the labels: the
 FPR-passing detections within the camera's range (``max_range_m``), the time between the first and
-last of them, the largest angle between their viewing rays to the slot's anchor, the anchor's
+last of them, the largest angle between their viewing rays to the slot's anchor (as it was at the
+latest of them), the anchor's
 height above the floor plane the odometry fitted (and the lowest corner of the class's cuboid
 there, oriented as the slot's latest detection: the stack's floor check), and the class vote: the
 share of the FPR-passing detections of the slots within ``vote_radius_m`` of the anchor that are
@@ -139,6 +140,7 @@ class SlotMap:
         self._cams = np.zeros((N, 64, 3))
         self.n_cams = [0] * N
         self.half = [0.0] * N  # floor half-extent of the slot's latest detection
+        self.angle = [0.0] * N  # largest angle between viewing rays (deg), as of the latest viewpoint
         self.cur = np.full(N, -1, dtype=np.int64)  # index of the current detection per slot
         self._present: list[int] = []
         self.dets: dict | None = None
@@ -243,6 +245,7 @@ class SlotMap:
                 self.fpr_n[j] += 1
                 if cams is not None:
                     self._add_cam(j, cams[i])
+                    self._view_angle(j)
             self._evidence_columns(j)
         self._vote_columns()
 
@@ -258,27 +261,35 @@ class SlotMap:
         sx, sy, sz = self.anchor_sum[j]
         return (sx / n, sy / n, sz / n) if n else (0.0, 0.0, 0.0)
 
-    def _evidence_columns(self, j: int) -> None:
-        """Slot j's evidence columns (but the vote share) from its detections so far."""
-        e, o = self._ev0, self._obs
+    def _view_angle(self, j: int) -> None:
+        """Slot j's largest angle between viewing rays to its anchor (recomputed when a viewpoint joins)."""
         ax, ay, az = self.anchor(j)
         angle = 0.0
         n = self.n_cams[j]
         if n >= 2:
             rays = np.array((ax, ay, az)) - self._cams[j, :n]
             norms = np.sqrt(np.einsum("ij,ij->i", rays, rays))
-            rays = rays[norms > 1e-9] / norms[norms > 1e-9, None]
-            if len(rays) >= 2:  # as stack.evidence.view_angle_deg
-                a = rays[np.argmin(rays @ rays.mean(axis=0))]
+            if norms.min() > 1e-9:
+                rays /= norms[:, None]
+            else:
+                rays = rays[norms > 1e-9] / norms[norms > 1e-9, None]
+            if len(rays) >= 2:  # as stack.evidence.view_angle_deg (the sum points as the mean does)
+                a = rays[np.argmin(rays @ rays.sum(axis=0))]
                 bb = rays[np.argmin(rays @ a)]
                 angle = math.degrees(math.acos(min(max(float(a @ bb), -1.0), 1.0)))
+        self.angle[j] = angle
+
+    def _evidence_columns(self, j: int) -> None:
+        """Slot j's evidence columns (but the vote share) from its detections so far."""
+        e, o = self._ev0, self._obs
+        ax, ay, az = self.anchor(j)
         height = clearance = 0.0
         if self.floor is not None:
             fn, fd = self.floor
             height = float(fn[0] * ax + fn[1] * ay + fn[2] * az + fd)
             clearance = height - self.half[j]
         span = self.fpr_last[j] - self.fpr_first[j] if self.fpr_n[j] else 0.0
-        o[j, e:e + 5] = (self.fpr_n[j], _bounded(span), angle, _bounded(height), _bounded(clearance))
+        o[j, e:e + 5] = (self.fpr_n[j], _bounded(span), self.angle[j], _bounded(height), _bounded(clearance))
 
     def _vote_columns(self) -> None:
         """Every slot's class-vote share: of the FPR-passing detections of the slots whose anchors lie
@@ -313,6 +324,7 @@ class SlotMap:
         self.fpr_n[j] = 0
         self.n_cams[j] = 0
         self.half[j] = 0.0
+        self.angle[j] = 0.0
         self._obs[j] = 0.0
         self.recycled += 1
         return j
