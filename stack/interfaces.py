@@ -3,7 +3,7 @@
 A component is any object with these methods; it need not inherit from anything. The bundled ones
 satisfy them: :class:`stack.lidar_slam.LidarOdometry` is an :class:`Odometry`,
 :class:`stack.dope_fpr.DopeDetector` a :class:`Detector`, the functions registered in
-:mod:`stack.object_store` (``last``, ``robust-mean``, ...) are :class:`LabellingPolicy`\\ s and the
+:mod:`stack.object_store` (``last``, ``robust-mean``, ...) are each a :class:`LabellingPolicy` and the
 harness's loop closing (``testbed/loop_closing.py``) is a :class:`LoopCloser`.
 
 Other people's components are named by import path, ``MODULE:ATTRIBUTE`` (``my_pkg.dets:MyDetector``),
