@@ -111,6 +111,9 @@ def make_detector(input_mode: str, stages: int, fpr: bool, weights=None):
     return DopeDetector(weights=weights, input=input_mode, stages=stages, fpr=fpr, dims=dims)
 
 
+DOPE_DETECTOR = "stack.dope_fpr:DopeDetector"
+
+
 def detector_name(detector) -> str:
     """``module:Class`` of a detector, for the report."""
     cls = type(detector)
@@ -277,8 +280,10 @@ def print_summary(report: dict) -> None:
     s = report["labels_summary"]
     d = report["detection"]
     o = report["odometry"]
-    print(f"{report['scenario']} seed {report['seed']} ({report['input']}, {report['stages']} stages, "
-          f"FPR {'on' if report['fpr'] else 'off'}, policy {report['policy']}): "
+    detector = report.get("detector", DOPE_DETECTOR)
+    setup = f"{report['input']}, {report['stages']} stages, FPR {'on' if report['fpr'] else 'off'}" \
+        if detector == DOPE_DETECTOR else f"detector {detector}"
+    print(f"{report['scenario']} seed {report['seed']} ({setup}, policy {report['policy']}): "
           f"{report['sim_seconds']:.0f} s simulated in {report['wall_seconds']:.0f} s")
     print(f"{'object':<12} {'id':>3} {'error cm':>9} {'false':>6}")
     for r in report["labels"]:
