@@ -231,10 +231,11 @@ class SlotMap:
             i = cur[j]
             x, y, z = xyz[i]
             o[j, 0] = 1.0
-            o[j, b:b + 7] = (x, y, z, _bounded(belief[i]), float(fpr[i]), _bounded(rng[i]), st)
+            o[j, b:b + 7] = (_bounded(x), _bounded(y), _bounded(z), _bounded(belief[i]), float(fpr[i]),
+                             _bounded(rng[i]), st)
             if self.has[j]:
                 lx, ly, lz = self.label[j]
-                o[j, self._lab0 + 6] = math.sqrt((x - lx) ** 2 + (y - ly) ** 2 + (z - lz) ** 2)
+                o[j, self._lab0 + 6] = _bounded(math.sqrt((x - lx) ** 2 + (y - ly) ** 2 + (z - lz) ** 2))
             if halves is not None:
                 self.half[j] = halves[i]
             if fpr[i] and not rng[i] > max_range:  # as stack.evidence: NaN range counts
@@ -277,7 +278,7 @@ class SlotMap:
                 a = rays[np.argmin(rays @ rays.sum(axis=0))]
                 bb = rays[np.argmin(rays @ a)]
                 angle = math.degrees(math.acos(min(max(float(a @ bb), -1.0), 1.0)))
-        self.angle[j] = angle
+        self.angle[j] = angle if angle == angle else 0.0  # NaN (a non-finite position): no angle
 
     def _evidence_columns(self, j: int) -> None:
         """Slot j's evidence columns (but the vote share) from its detections so far."""
@@ -380,10 +381,11 @@ class SlotMap:
         o, L = self._obs, self._lab0
         for j in published:
             lx, ly, lz = self.label[j]
-            o[j, L:L + 6] = (1.0, lx, ly, lz, math.log1p(self.ev_n[j]), _bounded(self.label_belief[j]))
+            o[j, L:L + 6] = (1.0, _bounded(lx), _bounded(ly), _bounded(lz), math.log1p(self.ev_n[j]),
+                             _bounded(self.label_belief[j]))
             if self.cur[j] >= 0:
                 x, y, z = dets["xyz_list"][int(self.cur[j])]
-                o[j, L + 6] = math.sqrt((x - lx) ** 2 + (y - ly) ** 2 + (z - lz) ** 2)
+                o[j, L + 6] = _bounded(math.sqrt((x - lx) ** 2 + (y - ly) ** 2 + (z - lz) ** 2))
         before = self.cost
         self.cost = self._cost(changed + published)
         return before - self.cost
