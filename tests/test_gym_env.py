@@ -634,13 +634,14 @@ def test_evidence_columns_follow_the_stack_definitions():
     assert o[0, c["ev_floor_clearance_m"]] == pytest.approx(anchor[2] + 0.1 - 0.05, abs=1e-6)
     assert EvidenceConfig().vote_radius_m > 0.05  # the two slots are one place
     assert o[0, c["ev_vote_share"]] == pytest.approx(5 / 7) and o[1, c["ev_vote_share"]] == pytest.approx(2 / 7)
+    assert o[0, c["ev_vote_lead"]] == pytest.approx(5 / 7) and o[1, c["ev_vote_lead"]] == pytest.approx(2 / 7)
     assert np.isfinite(o).all()
     # without a floor plane the floor columns are 0 (bounded, never NaN)
     bare = SlotMap(1, 6, np.array([0]), np.array([[2.0, 0.0, 0.4]]))
     bare.observe(evidence_dets([(0, (2.0, 0.0, 0.4), True, 0.0, (0, 0, 0.3), 0.05)]), 0, 1, 6)
     ob = bare.slots_obs()
     assert ob[0, c["ev_anchor_height_m"]] == 0.0 and ob[0, c["ev_floor_clearance_m"]] == 0.0
-    assert ob[0, c["ev_view_angle_deg"]] == 0.0 and ob[0, c["ev_vote_share"]] == 1.0
+    assert ob[0, c["ev_view_angle_deg"]] == 0.0 and ob[0, c["ev_vote_share"]] == 1.0 and ob[0, c["ev_vote_lead"]] == 1.0
 
 
 # --- a hand-built perception: the evidence policy against robust-mean ----------------------------------

@@ -14,7 +14,7 @@ Observation (``Dict``):
   (``stack.evidence``; ``slots`` describes each): its FPR-passing detections within range, their
   time span (s), the largest angle between their viewing rays (deg), the anchor's height above the
   odometry's floor plane (m), the lowest corner of the class's cuboid above it (m; both 0 without a
-  floor plane), and the class-vote share at the anchor (0..1). A slot without a label is a candidate.
+  floor plane), and the class-vote share and lead at the anchor (0..1). A slot without a label is a candidate.
 - ``pose`` (6,) float32: the robot's estimated pose in ``map`` (x, y, z, cos yaw, sin yaw) and the
   episode's elapsed fraction.
 

@@ -100,9 +100,8 @@ class RobustMean(Policy):
 class Evidence(Policy):
     """Publishes what the stack's ``EvidenceConfig`` would publish, from the slots' evidence columns.
 
-    The class vote is read as the slot's share of the FPR-passing detections at its place: the slot
-    stays published while no other class there has more (a tie keeps it), which is the stack's vote
-    when two classes meet at one place.
+    The class vote is read from the slot's lead over the strongest other class at its place: the
+    slot stays published while no other class there has more FPR-passing detections (a tie keeps it).
     """
 
     name = "evidence"
@@ -117,7 +116,7 @@ class Evidence(Policy):
         c, e = self.c, self.evidence
         return ((s[:, c.ev_fpr_detections] >= e.min_observations) & (s[:, c.ev_span_s] >= e.min_span_s)
                 & (s[:, c.ev_view_angle_deg] >= e.min_view_angle_deg)
-                & (s[:, c.ev_floor_clearance_m] >= -e.floor_tolerance_m) & (s[:, c.ev_vote_share] >= 0.5))
+                & (s[:, c.ev_floor_clearance_m] >= -e.floor_tolerance_m) & (s[:, c.ev_vote_lead] >= 0.5))
 
     def labels(self, s, info):
         c = self.c

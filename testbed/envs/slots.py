@@ -29,7 +29,9 @@ latest of them), the anchor's
 height above the floor plane the odometry fitted (and the lowest corner of the class's cuboid
 there, oriented as the slot's latest detection: the stack's floor check), and the class vote: the
 share of the FPR-passing detections of the slots within ``vote_radius_m`` of the anchor that are
-of the slot's class (the stack publishes only the best-supported class at a place).
+of the slot's class, and its lead: the slot's FPR-passing detections over those plus the strongest
+other class's there (the stack publishes only the best-supported class at a place: a lead of at
+least 0.5).
 
 The map's *cost* scores the labels against the truth the way ``testbed.scoring.score_map`` does:
 per class, a one-to-one assignment of labels to true objects (``linear_sum_assignment``; the most
@@ -72,7 +74,7 @@ class RewardConfig:
 
 
 EVIDENCE_FEATURES = ["ev_fpr_detections", "ev_span_s", "ev_view_angle_deg", "ev_anchor_height_m",
-                     "ev_floor_clearance_m", "ev_vote_share"]
+                     "ev_floor_clearance_m", "ev_vote_share", "ev_vote_lead"]
 
 
 def slot_features(n_classes: int) -> list[str]:
@@ -306,7 +308,13 @@ class SlotMap:
         total = near @ w
         same = (near & (c[:, None] == c[None])) @ w
         share = np.divide(same, total, out=np.zeros_like(total), where=total > 0)
+        # the strongest other class at the place: the stack's vote goes to the most supported class
+        by_class = np.stack([(near & (c[None] == k)) @ w for k in range(self.C)], axis=1)  # (U, C)
+        by_class[np.arange(len(used)), c] = 0.0
+        rival = by_class.max(axis=1)
+        lead = np.divide(w, w + rival, out=np.zeros_like(w), where=(w + rival) > 0)
         self._obs[used, self._ev0 + 5] = share
+        self._obs[used, self._ev0 + 6] = lead
 
     def _recycle(self) -> int:
         """Free the unlabelled slot seen longest ago (not one of this frame's); -1 if there is none."""
