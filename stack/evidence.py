@@ -11,7 +11,9 @@ consistent evidence, judged with what the robot itself knows:
   fits, and the observations it rests on were taken within the camera's range;
 - **one object per place**: map objects of different classes whose labels lie closer than two real
   objects can stand are one physical object seen as several classes (the depth network's typical
-  error is a wrong class on a right object); the class with the most evidence there wins the vote.
+  error is a wrong class on a right object); the class with the most evidence there wins the vote,
+  and only with at least ``vote_share`` of the place's observations (else the classes disagree and
+  no label there would be more than a guess).
 
 Everything else stays in the store as a candidate, saved with its reason (the ``status`` and
 ``reason`` columns), so a person or a policy can look at it, but it is not a label.
@@ -52,10 +54,6 @@ class Evidence:
     span_s: float
     view_angle_deg: float  # nan when no observation carries its viewpoint
     floor_height_m: float  # height of the cuboid's lowest corner above the floor; nan without a floor
-
-    def as_dict(self) -> dict:
-        return {"support": self.observations, "span_s": self.span_s, "view_angle_deg": self.view_angle_deg,
-                "floor_height_m": self.floor_height_m}
 
 
 def evidence_of(obj, config: EvidenceConfig, floor: tuple[np.ndarray, float] | None) -> Evidence:
