@@ -23,7 +23,7 @@ from stack.metrics import ate_rmse, ate_rmse_umeyama, rpe, write_tum
 from stack.object_store import ObjectStore
 from stack.pipeline import DopeSlam
 from stack.transforms import transform_points
-from testbed.scoring import FALSE_LABEL_M, score_map, summary_line  # noqa: F401 (FALSE_LABEL_M re-exported)
+from testbed.scoring import score_map, summary_line
 from testbed.simulate import write_json
 
 log = logging.getLogger(__name__)

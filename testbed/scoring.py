@@ -123,7 +123,7 @@ def rescore_run(run_dir, evidence=None) -> dict:
 
     from stack.evidence import EvidenceConfig
     from stack.metrics import read_tum
-    from stack.object_store import ObjectStore, ObjectStoreError, Observation, read_objects
+    from stack.object_store import ObjectStore, ObjectStoreError
 
     run_dir = Path(run_dir)
     report_path, labels_path, gt_path = (run_dir / n for n in ("report.json", "labels.json", "groundtruth_tum.txt"))
@@ -138,17 +138,16 @@ def rescore_run(run_dir, evidence=None) -> dict:
     except (ValueError, KeyError, TypeError) as e:
         raise RunDirError(f"{report_path}: field 'labels': expected rows with object, class and truth_xyz ({e})") from e
     try:
-        saved = read_objects(labels_path)
-        floor = ObjectStore.load(labels_path).floor
+        saved = ObjectStore.load(labels_path)
     except ObjectStoreError as e:
         raise RunDirError(str(e)) from e
+    floor = saved.floor
     if floor is None and report.get("map_floor"):
         floor = (np.asarray(report["map_floor"]["normal"], dtype=float), float(report["map_floor"]["d_m"]))
-    dims = {o.cls: o.size for o in saved}
-    store = ObjectStore(dims=dims, policy=report.get("policy", "robust-mean"), evidence=evidence or EvidenceConfig())
+    store = ObjectStore(dims={o.cls: o.size for o in saved}, policy=report.get("policy", "robust-mean"),
+                        evidence=evidence or EvidenceConfig())
     for obs in sorted((h for o in saved for h in o.history), key=lambda h: h.stamp):
-        if isinstance(obs, Observation):
-            store.add(obs)
+        store.add(obs)
     store.floor = floor
     store.publish()
     _, T_world_base = read_tum(gt_path)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from testbed.run import FALSE_LABEL_M
+from testbed.scoring import FALSE_LABEL_M
 
 PANEL_H = 240
 CAM_W = 320

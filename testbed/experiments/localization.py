@@ -12,7 +12,8 @@ import numpy as np
 
 from stack.object_store import label_of
 from stack.transforms import transform_points
-from testbed.run import FALSE_LABEL_M, run_episode
+from testbed.run import run_episode
+from testbed.scoring import FALSE_LABEL_M
 from testbed.simulate import write_json
 
 PAPER = Path(__file__).resolve().parent / "paper_results.json"  # the paper's figures, shipped with the package
