@@ -62,8 +62,8 @@ def timed(fn, repeats: int):
 
 
 def main(argv=None) -> int:
-    from stack.loop_closure import KeyFrame, LoopClosureConfig, LoopCloser, _voxel_down, surface_normals, verify
-    from stack.place_recognition import PlaceDatabase, describe
+    from stack.loops.closure import KeyFrame, LoopClosureConfig, LoopCloser, _voxel_down, surface_normals, verify
+    from stack.loops.place_recognition import PlaceDatabase, describe
     from stack.transforms import inv
     from testbed.vocabulary import default_vocabulary
 

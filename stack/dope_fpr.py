@@ -2,19 +2,19 @@
 
 Pipeline (paper sections 3.1 and 3.4):
 
-1. The frame (RGB, or depth sliced to a window and cleaned, :mod:`stack.depth_window`) is resized to
-   the network's input size (320x240 by default) and run through :class:`stack.dope_net.DopeNet`,
+1. The frame (RGB, or depth sliced to a window and cleaned, :mod:`stack.dope.depth_window`) is resized to
+   the network's input size (320x240 by default) and run through :class:`stack.dope.net.DopeNet`,
    keeping the outputs of every stage, so one pass serves every stage count 1..6.
 2. Per class, peaks of the smoothed belief maps (local maxima above ``peak_threshold``) give centroid
    and corner candidates; each corner joins the centroid its affinity vector points at (within
    ``angle_threshold``); peak positions are refined to sub-cell precision (belief-weighted centroid).
 3. ``cv2.solvePnP`` (EPnP, then Levenberg-Marquardt) with the class's cuboid gives the pose in the
    camera optical frame. The shipped weights are trained with view-canonical labels (the face towards
-   the camera is "front", :func:`stack.dope_train.canonical_order`), so the orientation is reported up to
+   the camera is "front", :func:`stack.dope.train.canonical_order`), so the orientation is reported up to
    a half turn about the object's vertical axis; the position is not affected.
 4. Depth refinement (RGB-D frames, on by default): PnP fixes where the object is in the image far
    better than its range, so the pose is slid along its viewing ray until the cuboid's front surface
-   meets the aligned depth image (:mod:`stack.depth_refine`). Orientation and image position are kept;
+   meets the aligned depth image (:mod:`stack.dope.depth_refine`). Orientation and image position are kept;
    the PnP-only pose stays in ``extra['pnp_pose']``.
 5. FPR: the belief tensor of the class (its 9 maps of the evaluated stage, negative values clipped)
    is summed; a sharp, single prediction has a small sum, several objects or an unsure network a
@@ -48,19 +48,19 @@ import numpy as np
 import torch
 from scipy.ndimage import maximum_filter
 
-from stack.colour_names import ColourModel, colour_names
-from stack.depth_refine import refine_translation
-from stack.depth_window import preprocess_depth, sliding_windows, window_content
-from stack.dope_net import N_AFFINITY, N_BELIEF, STRIDE, DopeNet, load_weights
+from stack.dope.colour_names import ColourModel, colour_names
+from stack.dope.depth_refine import refine_translation
+from stack.dope.depth_window import preprocess_depth, sliding_windows, window_content
+from stack.dope.net import N_AFFINITY, N_BELIEF, STRIDE, DopeNet, load_weights
 from stack import metrics
-from stack.dope_targets import to_input_px
+from stack.dope.targets import to_input_px
 from stack.messages import CameraFrame, Detection
 
 log = logging.getLogger(__name__)
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 WINDOW_MIN_PIXELS = 40  # default of DopeDetector(window_min_pixels=...): depth windows holding fewer are skipped
-MEAN, STD = 0.5, 0.25  # as in training (stack.dope_train)
+MEAN, STD = 0.5, 0.25  # as in training (stack.dope.train)
 
 
 def default_weights(input_mode: str = "rgb") -> Path:
@@ -365,17 +365,17 @@ class DopeDetector:
     0.3 m overlapping 0.1 m).
     window_min_pixels (depth input): a window runs through the network only when at least this many
     sampled pixels (every second row and column at 640x480, every pixel at 320x240) inside it stand
-    above the floor, which is fitted to the frame's depth (:func:`stack.depth_window.window_content`;
+    above the floor, which is fitted to the frame's depth (:func:`stack.dope.depth_window.window_content`;
     no floor found: every window runs).
     A window that holds only floor (and what is beyond it) costs a network pass and finds nothing but
     false positives. 0 runs every window.
     depth_refine: slide each detection along its viewing ray to fit the frame's aligned depth
-    (:mod:`stack.depth_refine`) when the frame has depth; the PnP-only pose is kept in
+    (:mod:`stack.dope.depth_refine`) when the frame has depth; the PnP-only pose is kept in
     ``extra['pnp_pose']``, the fit in ``extra['depth_fit']``.
     threads: torch threads (None: the environment variable DOPESLAM_TORCH_THREADS, else torch's
     default). On cores shared with other busy processes one thread is often 2x faster than two.
     depth_check (with FPR on and depth_refine): a detection whose cuboid the depth image does not
-    support (too few consistent depth pixels, see :func:`stack.depth_refine.refine_translation`) fails
+    support (too few consistent depth pixels, see :func:`stack.dope.depth_refine.refine_translation`) fails
     FPR (``extra['fpr_rejected_by'] = 'depth'``), whatever its belief sum.
     colour_check (with FPR on, RGB frames with light): a detection whose silhouette's colours fit
     another class's colour model better (by more than ``colour_margin``), or fit its own class's model

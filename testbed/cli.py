@@ -17,7 +17,7 @@ COMMAND_MODULES = [
     "testbed.commands.experiments",
     "testbed.commands.bags",
     "testbed.commands.policy",
-    "testbed.commands.seed2",
+    "testbed.commands.topomap",
     "testbed.commands.loops",
 ]
 

@@ -1,7 +1,7 @@
 """``--loop-closure`` for the harness (``dopeslam run``, ``dopeslam odometry``): one object that rides
 along the odometry loop, then corrects the trajectory, re-places the labels and scores the closures.
 
-The pieces it wires are the stack's (:mod:`stack.loop_closure`, :mod:`stack.place_recognition`); the
+The pieces it wires are the stack's (:mod:`stack.loops.closure`, :mod:`stack.loops.place_recognition`); the
 scoring of closures against ground truth is the testbed's: a closure is *false* when its registered
 relative pose is further than ``FALSE_CLOSURE_M`` / ``FALSE_CLOSURE_DEG`` from the true one (for two
 different places that is metres).
@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from stack.fusion import fuse
-from stack.loop_closure import LoopCloser, LoopClosureConfig
+from stack.loops.closure import LoopCloser, LoopClosureConfig
 from stack.messages import CameraFrame, Detection
 from stack.metrics import ate_rmse
-from stack.place_recognition import VocabularyTree
+from stack.loops.place_recognition import VocabularyTree
 from stack.transforms import inv, transform_points
 
 log = logging.getLogger(__name__)

@@ -32,7 +32,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from stack.place_recognition import FeatureConfig, PlaceDatabase, VocabularyTree, describe
+from stack.loops.place_recognition import FeatureConfig, PlaceDatabase, VocabularyTree, describe
 
 log = logging.getLogger(__name__)
 

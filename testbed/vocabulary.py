@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stack.place_recognition import FeatureConfig, VocabularyTree, describe
+from stack.loops.place_recognition import FeatureConfig, VocabularyTree, describe
 
 log = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@ model better fails FPR; one whose colours fit its own class passes; dark frames 
 import numpy as np
 import pytest
 
-from stack.colour_names import NAMES, ColourModel
+from stack.dope.colour_names import NAMES, ColourModel
 from stack.dope_fpr import DopeDetector
 from stack.messages import CameraFrame, CameraInfo, Detection
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from stack.depth_refine import _ray_box_depth, refine_translation
+from stack.dope.depth_refine import _ray_box_depth, refine_translation
 
 K = np.array([[615.0, 0, 319.5], [0, 615.0, 239.5], [0, 0, 1]])
 DIMS = np.array([0.10, 0.14, 0.035])

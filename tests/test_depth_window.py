@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from stack.depth_window import clean, preprocess_depth, slice_depth, sliding_windows
+from stack.dope.depth_window import clean, preprocess_depth, slice_depth, sliding_windows
 
 
 def test_slice_bounds_map_near_far_and_invalid_to_uniform_values():
@@ -66,7 +66,7 @@ def _floor_scene(h=0.3, box=True, noise=0.0, seed=0):
 
 
 def test_floor_is_fitted_and_only_windows_holding_something_count():
-    from stack.depth_window import depth_points, fit_floor, window_content
+    from stack.dope.depth_window import depth_points, fit_floor, window_content
 
     depth, K = _floor_scene(noise=0.003)
     floor = fit_floor(depth_points(depth, K))

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from stack.dope_net import N_AFFINITY, N_BELIEF, DopeNet, DopeNetConfig, load_weights, save_weights
+from stack.dope.net import N_AFFINITY, N_BELIEF, DopeNet, DopeNetConfig, load_weights, save_weights
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +66,7 @@ def test_loading_a_non_weights_file_names_the_file(tmp_path):
 
 
 def test_expand_stages_repeats_the_last_stage():
-    from stack.dope_net import expand_stages
+    from stack.dope.net import expand_stages
 
     torch.manual_seed(1)
     short = DopeNet(DopeNetConfig(width=0.125, stages=2)).eval()

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from stack.dope_fpr import associate, cuboid_points, find_peaks, refine_peak, solve_pose
-from stack.dope_targets import make_targets, to_output_coords
+from stack.dope.targets import make_targets, to_output_coords
 from stack.transforms import make_T
 
 K = np.array([[610.0, 0, 319.5], [0, 610.0, 239.5], [0, 0, 1]])

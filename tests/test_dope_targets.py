@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from stack.dope_net import N_AFFINITY, N_BELIEF
-from stack.dope_targets import make_targets, to_input_px, to_output_coords
+from stack.dope.net import N_AFFINITY, N_BELIEF
+from stack.dope.targets import make_targets, to_input_px, to_output_coords
 
 
 def _object(centre_px, half=(16.0, 24.0)):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from stack.dope_train import ShardData, TrainConfig, dope_loss, sample_batch, train
+from stack.dope.train import ShardData, TrainConfig, dope_loss, sample_batch, train
 
 
 def _write_shard(folder, n=6, seed=0):
@@ -72,7 +72,7 @@ def test_tiny_training_run_lowers_the_loss_and_resumes(tmp_path):
 
 
 def test_class_weights_pick_the_weighted_class_more_often():
-    from stack.dope_train import choose_window, pick_focus
+    from stack.dope.train import choose_window, pick_focus
 
     objs = [(0, np.zeros((9, 2)), np.array([0.0, 0.0, 0.6])), (1, np.zeros((9, 2)), np.array([0.0, 0.0, 1.5]))]
     rng = np.random.default_rng(0)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from stack.dope_fpr import FprThresholds, belief_sum, calibrate_threshold
-from stack.dope_targets import make_targets
+from stack.dope.targets import make_targets
 
 
 def _cuboid_kp(cx, cy, s=1.0):

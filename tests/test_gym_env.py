@@ -378,7 +378,7 @@ def test_real_dope_detector_path_caches_every_stage_count(tmp_path):
     detects does not matter), to check the cache keeps every stage count and names the weights."""
     import torch
 
-    from stack.dope_net import DopeNet, DopeNetConfig, save_weights
+    from stack.dope.net import DopeNet, DopeNetConfig, save_weights
 
     torch.manual_seed(0)
     weights = tmp_path / "w" / "dope_rgb.pt"

@@ -7,7 +7,7 @@ import pytest
 from sim.lidar import BeamPattern, BoxRayCaster
 from sim.world import Box
 from stack.fusion import fuse, trajectory_lookup
-from stack.loop_closure import LoopCloser, LoopClosureConfig, _voxel_down, optimise_pose_graph, verify
+from stack.loops.closure import LoopCloser, LoopClosureConfig, _voxel_down, optimise_pose_graph, verify
 from stack.messages import Detection
 from stack.metrics import ate_rmse
 from stack.transforms import from_xyz_rpy, inv, make_T

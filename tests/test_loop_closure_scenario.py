@@ -12,9 +12,9 @@ cached vocabulary.
 import numpy as np
 import pytest
 
-from stack.loop_closure import LoopCloser, LoopClosureConfig
+from stack.loops.closure import LoopCloser, LoopClosureConfig
 from stack.metrics import ate_rmse
-from stack.place_recognition import VocabularyTree, describe
+from stack.loops.place_recognition import VocabularyTree, describe
 from stack.transforms import inv
 
 pytestmark = pytest.mark.slow

@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stack.place_recognition import (FeatureConfig, PlaceDatabase, VocabularyError, VocabularyTree, describe)
+from stack.loops.place_recognition import (FeatureConfig, PlaceDatabase, VocabularyError, VocabularyTree, describe)
 
 E = np.eye(128, dtype=np.float32)
 

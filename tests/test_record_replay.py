@@ -304,7 +304,7 @@ def test_replay_of_a_truncated_bag_uses_its_complete_messages(live, replayed, tm
 def test_replay_with_loop_closure(live, replayed, tmp_path):
     """``--loop-closure`` on a bag: key frames from the bag's colour images, the corrected trajectory
     places the labels; on this short straight drive nothing may be closed falsely or moved far."""
-    from stack.place_recognition import VocabularyTree, describe
+    from stack.loops.place_recognition import VocabularyTree, describe
 
     with BagReader(live["bag"]) as bag:
         feats = [describe(f.rgb) for f in islice(bag.camera_frames(), 0, None, 4)]

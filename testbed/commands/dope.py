@@ -24,7 +24,7 @@ def _datagen(args) -> int:
 
 def parse_class_weights(items) -> dict:
     """``["Yogurt=3", ...]`` -> ``{"Yogurt": 3.0}``; a malformed item names the flag and the form expected."""
-    from stack.dope_train import TrainConfig
+    from stack.dope.train import TrainConfig
 
     classes = list(TrainConfig.__dataclass_fields__["classes"].default)
     out = {}
@@ -42,7 +42,7 @@ def parse_class_weights(items) -> dict:
 
 
 def _train(args) -> int:
-    from stack.dope_train import TrainConfig, train
+    from stack.dope.train import TrainConfig, train
 
     window = tuple(float(v) for v in args.depth_window.split(",")) if args.depth_window else (0.0, 0.0)
     cfg = TrainConfig(data_dir=args.data, out_dir=args.out, input=args.input, width=args.width, stages=args.stages,
@@ -74,7 +74,7 @@ def _shards(args) -> list[int]:
 
 
 def _evaluate(args) -> int:
-    from stack.dope_eval import evaluate
+    from stack.dope.evaluate import evaluate
 
     det = _detector(args)
     res = evaluate(det, args.data, _shards(args))
@@ -93,7 +93,7 @@ def _evaluate(args) -> int:
 
 
 def _calibrate(args) -> int:
-    from stack.dope_eval import evaluate
+    from stack.dope.evaluate import evaluate
     from stack.dope_fpr import FprThresholds, file_sha256
 
     det = _detector(args)
@@ -112,7 +112,7 @@ def _calibrate(args) -> int:
 
 
 def _export(args) -> int:
-    from stack.dope_net import expand_stages, load_weights, save_weights
+    from stack.dope.net import expand_stages, load_weights, save_weights
 
     model, extra = load_weights(args.src)
     if args.stages and args.stages != model.config.stages:

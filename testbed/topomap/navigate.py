@@ -2,9 +2,9 @@
 section 4.4) in the simulator, as teach and repeat over the topological map.
 
 1. The map (the teach run): the scenario's scripted drive (its own seed, lit); its camera stream
-   (cached) goes through ``stack.topo_map.TopoMapper`` (ORPE poses, vocabulary-tree words,
+   (cached) goes through ``stack.topomap.topological_map.TopoMapper`` (ORPE poses, vocabulary-tree words,
    colour-verified HOG attributes), then places seen on two passes are joined by ``revisit``
-   edges (``stack.topo_map.add_revisit_edges``). The map is cached by scenario and settings. The
+   edges (``stack.topomap.topological_map.add_revisit_edges``). The map is cached by scenario and settings. The
    mapping run's dead reckoning is kept beside it (``teach_odometry``: the wheels' travel, the
    gyro's heading).
 2. The navigation run (the repeat): a fresh episode of the same scenario whose start pose is
@@ -49,12 +49,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from stack.mono_pose import MonoConfig, detect_features
-from stack.topo_map import (REVISIT, MapperConfig, TopoMap, TopoMapper, add_revisit_edges, localise,
+from stack.topomap.mono_pose import MonoConfig, detect_features
+from stack.topomap.topological_map import (REVISIT, MapperConfig, TopoMap, TopoMapper, add_revisit_edges, localise,
                             points_from_pair, pose_against_points, relative_pose_up_to_scale)
 from stack.dead_reckoning import DeadReckoning
 from stack.transforms import inv, wrap_angle, yaw_of
-from testbed.seed2.stream import CameraStream, cache_root, camera_stream
+from testbed.topomap.stream import CameraStream, cache_root, camera_stream
 
 log = logging.getLogger(__name__)
 SUCCESS_M = 0.5
@@ -62,7 +62,7 @@ MIN_FIX_INLIERS = 12  # ORPE inliers (reprojection < 2 px) for a full fix agains
 
 
 def _weights_tag() -> str:
-    from stack.hog_detector import DEFAULT_COLOUR, DEFAULT_WEIGHTS
+    from stack.topomap.hog_detector import DEFAULT_COLOUR, DEFAULT_WEIGHTS
 
     h = hashlib.sha1()
     for p in (DEFAULT_WEIGHTS, DEFAULT_COLOUR):
@@ -72,10 +72,10 @@ def _weights_tag() -> str:
 
 
 def load_detector():
-    from stack.hog_detector import DEFAULT_WEIGHTS, HogDetector
+    from stack.topomap.hog_detector import DEFAULT_WEIGHTS, HogDetector
 
     if not DEFAULT_WEIGHTS.exists():
-        log.warning("%s missing: the map gets no object attributes (train with python -m testbed.seed2.detector train)",
+        log.warning("%s missing: the map gets no object attributes (train with python -m testbed.topomap.detector train)",
                     DEFAULT_WEIGHTS)
         return None
     return HogDetector.load()
@@ -653,7 +653,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
 def _first_fix(topo: TopoMap, rgb, tree, rng, cfg: MonoConfig, feats, k: int = 10):
     """Retrieval proposes ``k`` nodes; the first of them along the mapping run that verifies (a route
     driven twice has twins of its start; teach and repeat starts at the first)."""
-    from stack.place_recognition import describe
+    from stack.loops.place_recognition import describe
 
     f = describe(rgb)
     if f is None:
@@ -734,7 +734,7 @@ def _fmt(v) -> str:
 
 
 def batch(scenarios=("experiment3_columns", "shelf_corridor", "office_loop_twice"), seeds=range(10),
-          out_dir="out/seed2/navigate", gyro: bool = True) -> dict:
+          out_dir="out/topomap/navigate", gyro: bool = True) -> dict:
     """Ten seeded navigation runs per scenario, the object asked for cycling through the objects the
     map holds (seed k asks for the k mod n-th; those without a node are listed). Writes
     ``navigate_batch.json``."""
@@ -768,10 +768,10 @@ def batch(scenarios=("experiment3_columns", "shelf_corridor", "office_loop_twice
 if __name__ == "__main__":
     import argparse
 
-    ap = argparse.ArgumentParser(prog="python -m testbed.seed2.navigate")
+    ap = argparse.ArgumentParser(prog="python -m testbed.topomap.navigate")
     ap.add_argument("--scenarios", default="experiment3_columns,shelf_corridor,office_loop_twice")
     ap.add_argument("--seeds", default="0-9")
-    ap.add_argument("--out", default="out/seed2/navigate")
+    ap.add_argument("--out", default="out/topomap/navigate")
     ap.add_argument("--wheels-only", action="store_true", help="dead reckoning from the wheel odometry alone")
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from stack.colour_names import NAMES, ColourModel, box_histogram, colour_names, cosine_distance, name_probabilities
+from stack.dope.colour_names import NAMES, ColourModel, box_histogram, colour_names, cosine_distance, name_probabilities
 
 
 def patch(rgb, size=(20, 30), noise=0.0, seed=0):

@@ -1,7 +1,7 @@
 """Training DOPE on the synthetic shards written by ``sim/datagen.py`` (``dopeslam train``).
 
 Reads shards (``shard_NNNNN.npz`` + ``.json``) from a data directory, samples crops around the
-annotated objects, builds belief/affinity targets (:mod:`stack.dope_targets`), and minimises the
+annotated objects, builds belief/affinity targets (:mod:`stack.dope.targets`), and minimises the
 L2 loss on every stage's beliefs and affinities, with pixels near key points up-weighted so that a
 network predicting all-zero maps is not rewarded. Augmentation: brightness, contrast, per-channel
 gain, blur and sensor noise. Adam with a step-decayed learning rate.
@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 import torch
 
-from stack.dope_net import N_BELIEF, STRIDE, DopeNet, DopeNetConfig, expand_stages, save_weights
-from stack.dope_targets import make_targets, to_input_px
+from stack.dope.net import N_BELIEF, STRIDE, DopeNet, DopeNetConfig, expand_stages, save_weights
+from stack.dope.targets import make_targets, to_input_px
 
 log = logging.getLogger(__name__)
 
@@ -177,7 +177,7 @@ def normalise(img01: np.ndarray) -> np.ndarray:
 
 def depth_input(depth_mm: np.ndarray, window: tuple[float, float]) -> np.ndarray:
     """(H, W, 3) float [0, 1] network image from a depth map (mm) and a (near, far) window in metres."""
-    from stack.depth_window import preprocess_depth
+    from stack.dope.depth_window import preprocess_depth
 
     img = preprocess_depth(depth_mm.astype(np.float32) / 1000.0, window[0], window[1])
     return np.repeat(img[..., None], 3, axis=2)

@@ -1,5 +1,5 @@
 """Sliding-window object detector of the topological-map paper (section 3): HOG shape filters, then the
-colour-name verification step (``stack.colour_names``).
+colour-name verification step (``stack.dope.colour_names``).
 
 What we chose, and why. The paper's iDPM is a deformable part model (root + part filters at twice
 the resolution, latent SVM, three mixture components) on Felzenszwalb's 31-dimensional HOG, plus a
@@ -33,10 +33,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from stack.colour_names import ColourModel, box_histogram
+from stack.dope.colour_names import ColourModel, box_histogram
 
 log = logging.getLogger(__name__)
-WEIGHTS_DIR = Path(__file__).parent / "weights"
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "hog_detector.npz"
 DEFAULT_COLOUR = WEIGHTS_DIR / "hog_colour.json"
 N_FEAT = 31

@@ -15,7 +15,7 @@ as in the topological-map paper's section 4.2.
 
 Features (corners + descriptors) are computed once per image and cached beside the stream.
 
-    python -m testbed.seed2.pose_eval [--scenarios experiment3_columns,shelf_corridor] [--runs 100] --out out/seed2/pose
+    python -m testbed.topomap.pose_eval [--scenarios experiment3_columns,shelf_corridor] [--runs 100] --out out/topomap/pose
 """
 from __future__ import annotations
 
@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stack.mono_pose import METHODS, Features, MonoConfig, detect_features, run_sequence
-from testbed.seed2.stream import CameraStream, cache_root, camera_stream
+from stack.topomap.mono_pose import METHODS, Features, MonoConfig, detect_features, run_sequence
+from testbed.topomap.stream import CameraStream, cache_root, camera_stream
 
 log = logging.getLogger(__name__)
 SPANS = {"experiment3_columns": 150, "shelf_corridor": 80}
@@ -205,7 +205,7 @@ def plot_scenario(res: dict, out: Path) -> None:
     save(fig, out / f"fig17_trajectory_{name}.png")
 
 
-def run(scenarios=DEFAULT_SCENARIOS, runs: int = 100, out: Path = Path("out/seed2/pose")) -> dict:
+def run(scenarios=DEFAULT_SCENARIOS, runs: int = 100, out: Path = Path("out/topomap/pose")) -> dict:
     from testbed.simulate import write_json
 
     out.mkdir(parents=True, exist_ok=True)
@@ -238,10 +238,10 @@ def print_tables(report: dict) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m testbed.seed2.pose_eval")
+    ap = argparse.ArgumentParser(prog="python -m testbed.topomap.pose_eval")
     ap.add_argument("--scenarios", default=",".join(DEFAULT_SCENARIOS))
     ap.add_argument("--runs", type=int, default=100)
-    ap.add_argument("--out", type=Path, default=Path("out/seed2/pose"))
+    ap.add_argument("--out", type=Path, default=Path("out/topomap/pose"))
     ap.add_argument("--table", type=Path, default=None, help="print the tables of an existing pose_eval.json")
     args = ap.parse_args(argv)
     if args.table is not None:

@@ -3,10 +3,10 @@ pose, object attributes), edges carry relative poses; built from a monocular ima
 and loaded, used to localise by retrieval and to plan to the node holding an object.
 
 Building (``TopoMapper``): every image goes through the monocular pose pipeline
-(``stack.mono_pose``, ORPE by default); each of its key frames becomes a node (at most one image in
+(``stack.topomap.mono_pose``, ORPE by default); each of its key frames becomes a node (at most one image in
 ten, none while the robot stands still). A node keeps
 
-* its key frame's visual words (``stack.place_recognition``: Shi-Tomasi + SIFT quantised by the
+* its key frame's visual words (``stack.loops.place_recognition``: Shi-Tomasi + SIFT quantised by the
   vocabulary tree; the node's TF-IDF vector goes into the retrieval database),
 * its pose ``T_map_camera`` (map = the first key frame's camera, metric from the given baseline),
 * its pose-pipeline features with their triangulated points (for a metric fix against the node),
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stack.mono_pose import (Features, MonoConfig, MonoVO, detect_features, grunert, match_features, orpe,
+from stack.topomap.mono_pose import (Features, MonoConfig, MonoVO, detect_features, grunert, match_features, orpe,
                              triangulate)
 from stack.transforms import inv
 
@@ -181,8 +181,8 @@ class TopoMap:
 
     # -- retrieval
     def retrieval_database(self, tree):
-        """The nodes' TF-IDF vectors in a place database (``stack.place_recognition``)."""
-        from stack.place_recognition import PlaceDatabase
+        """The nodes' TF-IDF vectors in a place database (``stack.loops.place_recognition``)."""
+        from stack.loops.place_recognition import PlaceDatabase
 
         if self._db is None or self._db.tree is not tree:
             self._db = PlaceDatabase(tree)
@@ -417,7 +417,7 @@ class TopoMapper:
         return self.topo
 
     def _add_node(self, kf, bridge: bool) -> None:
-        from stack.place_recognition import describe
+        from stack.loops.place_recognition import describe
 
         rgb, odom = self._images.get(kf.index, (None, None))
         T_map_cam = self.T_map_seg @ inv(kf.T_cw)
@@ -492,7 +492,7 @@ def localise(topo: TopoMap, rgb: np.ndarray, tree, k: int = 3, method: str = "or
     pose relative to the best node that verifies (its points, ORPE or Grunert in RANSAC)."""
     import cv2
 
-    from stack.place_recognition import describe
+    from stack.loops.place_recognition import describe
 
     cfg = cfg or MonoConfig()
     rng = rng or np.random.default_rng(0)

@@ -7,7 +7,7 @@ what RTAB-Map adds on top of odometry:
    registered LiDAR scan (its deskewed points in ``base_link`` and its odometry pose). Without a
    camera stream, every tenth scan is a LiDAR-only key frame.
 2. **Candidates.** A described key frame queries the vocabulary-tree database
-   (:mod:`stack.place_recognition`) for the best-scoring *earlier* key frames, skipping the recent
+   (:mod:`stack.loops.place_recognition`) for the best-scoring *earlier* key frames, skipping the recent
    ones (same place because the robot has not moved on, not because it came back). A key frame
    without a description (a black image in the dark, a featureless wall) proposes instead the key
    frames near its current pose estimate (LiDAR-only fallback); ``proximity = "always"`` does both.
@@ -40,7 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from stack.place_recognition import FeatureConfig, KeyFrameFeatures, PlaceDatabase, VocabularyTree, describe
+from stack.loops.place_recognition import FeatureConfig, KeyFrameFeatures, PlaceDatabase, VocabularyTree, describe
 from stack.transforms import inv, interpolate_trajectory, make_T, transform_points
 
 log = logging.getLogger(__name__)

@@ -24,12 +24,12 @@ def register(sub) -> None:
 
 
 def _navigate(args) -> int:
-    from testbed.seed2.navigate import main_args
+    from testbed.topomap.navigate import main_args
 
     return main_args(args)
 
 
 def _compare(args) -> int:
-    from testbed.seed2.compare import main_args
+    from testbed.topomap.compare import main_args
 
     return main_args(args)

@@ -1,4 +1,4 @@
-"""Train and evaluate the topological-map paper's colour-verified HOG detector (``stack.hog_detector``).
+"""Train and evaluate the topological-map paper's colour-verified HOG detector (``stack.topomap.hog_detector``).
 
 Training data: the DOPE data shards (``sim.datagen``: our renderer, domain-randomised rooms, the six
 objects), shards with index % 5 != 4; held out for testing: index % 5 == 4. Boxes are the tight
@@ -12,8 +12,8 @@ colour step, detections whose colour-name histogram fails the class's colour mod
 before ranking. Test images: the held-out shards and, separately, frames of the bundled lit
 scenarios' camera streams (every 5th frame).
 
-    python -m testbed.seed2.detector train [--data runs/data/rgbd_v1] [--max-images N]
-    python -m testbed.seed2.detector eval --out out/seed2/detector
+    python -m testbed.topomap.detector train [--data runs/data/rgbd_v1] [--max-images N]
+    python -m testbed.topomap.detector eval --out out/topomap/detector
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from stack.hog_detector import (DEFAULT_COLOUR, DEFAULT_WEIGHTS, HogDetector, TrainingImage, fit_colour_model, iou,
+from stack.topomap.hog_detector import (DEFAULT_COLOUR, DEFAULT_WEIGHTS, HogDetector, TrainingImage, fit_colour_model, iou,
                                 load_shard_images, train_detector)
 
 log = logging.getLogger(__name__)
@@ -115,7 +115,7 @@ def precision_at(curve: dict, recall: float) -> float | None:
 
 
 def test_images_from_streams(scenarios=("experiment3_columns", "shelf_corridor"), every: int = 5) -> list[TrainingImage]:
-    from testbed.seed2.stream import camera_stream
+    from testbed.topomap.stream import camera_stream
 
     out = []
     for name in scenarios:
@@ -237,7 +237,7 @@ def print_table(report: dict) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m testbed.seed2.detector")
+    ap = argparse.ArgumentParser(prog="python -m testbed.topomap.detector")
     sub = ap.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train")
     t.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -247,7 +247,7 @@ def main(argv=None) -> int:
     t.add_argument("--seed", type=int, default=0)
     e = sub.add_parser("eval")
     e.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    e.add_argument("--out", type=Path, default=Path("out/seed2/detector"))
+    e.add_argument("--out", type=Path, default=Path("out/topomap/detector"))
     e.add_argument("--max-images", type=int, default=None)
     e.add_argument("--no-streams", action="store_true")
     tb = sub.add_parser("table")

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from stack.messages import ObjectTruth
-from stack.topo_map import Node, ObjectAttribute, TopoMap, score_map
+from stack.topomap.topological_map import Node, ObjectAttribute, TopoMap, score_map
 from stack.transforms import make_T
 
 K = np.array([[610.0, 0, 319.5], [0, 610.0, 239.5], [0, 0, 1]])
@@ -81,7 +81,7 @@ def test_scoring_against_ground_truth():
 
 
 def test_forward_only_planning_and_revisit_edges(tmp_path):
-    from stack.topo_map import REVISIT
+    from stack.topomap.topological_map import REVISIT
 
     m = small_map()
     assert m.shortest_path(4, 1, forward_only=True) is None  # the mapping run never drove 4 -> 1
@@ -95,8 +95,8 @@ def test_forward_only_planning_and_revisit_edges(tmp_path):
 def test_relative_pose_up_to_scale_from_all_features_of_a_node():
     """The heading fix: rotation of the current camera against a node's view from 2D-2D matches
     (no 3D points needed), on synthetic correspondences with a known 6 deg turn."""
-    from stack.mono_pose import Features
-    from stack.topo_map import relative_pose_up_to_scale
+    from stack.topomap.mono_pose import Features
+    from stack.topomap.topological_map import relative_pose_up_to_scale
 
     rng = np.random.default_rng(3)
     X = np.c_[rng.uniform(-4, 4, 200), rng.uniform(-1.5, 1.5, 200), rng.uniform(3, 12, 200)]  # node camera
@@ -132,8 +132,8 @@ def test_points_from_an_image_pair_then_a_metric_pose_against_them():
     """Route images without a node's points: triangulated from a second image 0.4 m further on (the
     baseline given, as the wheel odometry gives it on a straight), then ORPE of a third view against
     them recovers its metric pose."""
-    from stack.mono_pose import Features
-    from stack.topo_map import points_from_pair, pose_against_points
+    from stack.topomap.mono_pose import Features
+    from stack.topomap.topological_map import points_from_pair, pose_against_points
 
     rng = np.random.default_rng(7)
     X = np.c_[rng.uniform(-4, 4, 300), rng.uniform(-1.5, 1.5, 300), rng.uniform(3, 10, 300)]  # reference camera

@@ -23,9 +23,9 @@ import logging
 import time
 from pathlib import Path
 
-from stack.topo_map import score_map
-from testbed.seed2.navigate import build_map, load_detector, load_tree, node_truth
-from testbed.seed2.stream import camera_stream
+from stack.topomap.topological_map import score_map
+from testbed.topomap.navigate import build_map, load_detector, load_tree, node_truth
+from testbed.topomap.stream import camera_stream
 from testbed.simulate import write_json
 
 log = logging.getLogger(__name__)
@@ -39,7 +39,7 @@ def visible_sets(topo, stream) -> dict[int, set]:
     return out
 
 
-def run_seed2(scenario, seed: int, light: float, duration=None, tree=None, detector=None) -> dict:
+def run_topomap(scenario, seed: int, light: float, duration=None, tree=None, detector=None) -> dict:
     t0 = time.perf_counter()
     stream = camera_stream(scenario, seed=seed, light=light, duration=duration)
     topo = build_map(stream, tree, detector)
@@ -48,7 +48,7 @@ def run_seed2(scenario, seed: int, light: float, duration=None, tree=None, detec
     T_world_map = truth[0] if topo.nodes else None
     score = score_map(topo, stream.objects, truth, visible_sets(topo, stream), T_world_map)
     s = score["summary"]
-    return {"stack": "seed2-topological", "scenario": stream.scenario, "seed": stream.seed, "light": stream.light,
+    return {"stack": "topological-map", "scenario": stream.scenario, "seed": stream.seed, "light": stream.light,
             "objects": len(stream.objects), "found": s["found"], "false_attributions": s["false_attributions"],
             "localisation_error_m": s["node_position_rmse_m"], "nodes": s["nodes"],
             "segments": len(topo.meta.get("segments", [])),
@@ -92,7 +92,7 @@ def compare(scenario=None, out_dir="out/compare", seeds: list[int] | None = None
             except (ImportError, FileNotFoundError, ValueError) as exc:  # a stack that cannot run is reported, not hidden
                 a = {"stack": "dopeslam", "seed": seed, "light": light, "error": str(exc)}
             log.info("%s, %s, seed %d: monocular topological map", sc.name, cond, seed)
-            b = run_seed2(scenario, seed, light, duration, tree, detector)
+            b = run_topomap(scenario, seed, light, duration, tree, detector)
             for r in (a, b):
                 r["condition"] = cond
                 rows.append(r)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stack.mono_pose import (MonoConfig, bearings, decompose_essential, eight_point, grunert, grunert_p3p, normalise,
+from stack.topomap.mono_pose import (MonoConfig, bearings, decompose_essential, eight_point, grunert, grunert_p3p, normalise,
                              orpe, project, refine_pose_lm, scale_from_point, triangulate, trpe)
 
 K = np.array([[610.0, 0, 319.5], [0, 610.0, 239.5], [0, 0, 1]])
@@ -116,7 +116,7 @@ def test_triangulation_drops_points_behind_or_without_parallax():
 
 
 def test_pose_figures_are_written(tmp_path):
-    from testbed.seed2.pose_eval import plot_scenario
+    from testbed.topomap.pose_eval import plot_scenario
 
     t = np.linspace(0, 2, 20)
     xyz = np.stack([t, 0.1 * t, 0.3 + 0 * t], axis=1)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stack.dope_net import N_AFFINITY, N_BELIEF, STRIDE
+from stack.dope.net import N_AFFINITY, N_BELIEF, STRIDE
 
 
 def to_output_coords(uv_px: np.ndarray, stride: int = STRIDE) -> np.ndarray:

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from stack.hog_detector import (HogDetector, TrainingImage, fhog, fit_colour_model, iou, nms, train_detector,
+from stack.topomap.hog_detector import (HogDetector, TrainingImage, fhog, fit_colour_model, iou, nms, train_detector,
                                 train_linear_svm)
 
 

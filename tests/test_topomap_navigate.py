@@ -6,15 +6,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-SCENARIO = str(Path(__file__).parent / "data" / "seed2_short.toml")
+SCENARIO = str(Path(__file__).parent / "data" / "topomap_short.toml")
 
 
 @pytest.mark.slow
 def test_navigate_to_a_node_of_a_short_map(tmp_path, monkeypatch):
     monkeypatch.setenv("DOPESLAM_CACHE", str(tmp_path / "cache"))
-    from stack.place_recognition import VocabularyTree
-    from testbed.seed2.navigate import build_map, navigate
-    from testbed.seed2.stream import camera_stream
+    from stack.loops.place_recognition import VocabularyTree
+    from testbed.topomap.navigate import build_map, navigate
+    from testbed.topomap.stream import camera_stream
 
     stream = camera_stream(SCENARIO)
     assert stream.info.width == 320 and len(stream) == 81
@@ -37,7 +37,7 @@ def test_navigate_to_a_node_of_a_short_map(tmp_path, monkeypatch):
 
 def test_object_names_and_classes_resolve():
     from stack.messages import ObjectTruth
-    from testbed.seed2.navigate import resolve_object
+    from testbed.topomap.navigate import resolve_object
 
     objs = [ObjectTruth("Mustard_3", "Mustard", np.eye(4), np.ones(3)), ObjectTruth("E", "E", np.eye(4), np.ones(3))]
     assert resolve_object("Mustard_3", objs)[0] == "Mustard"
@@ -49,7 +49,7 @@ def test_object_names_and_classes_resolve():
 def _two_pass_map():
     """Pass 1: nodes 0-2 at x = 0, 1, 2 m; pass 2: nodes 3-5 at the same places, but the mapping run's
     odometry has drifted 0.5 m sideways and 0.1 rad by then. Map poses at half scale."""
-    from stack.topo_map import REVISIT, Node, TopoMap
+    from stack.topomap.topological_map import REVISIT, Node, TopoMap
     from stack.transforms import make_T
 
     def rot_z(a):
@@ -71,8 +71,8 @@ def _two_pass_map():
 
 
 def test_route_jumps_passes_through_a_revisit_edge():
-    from stack.topo_map import ObjectAttribute
-    from testbed.seed2.navigate import route_length, route_poses, route_target, segment_scales, teach_route
+    from stack.topomap.topological_map import ObjectAttribute
+    from testbed.topomap.navigate import route_length, route_poses, route_target, segment_scales, teach_route
 
     m, odom = _two_pass_map()
     scales = segment_scales(m, odom)
@@ -95,7 +95,7 @@ def test_route_jumps_passes_through_a_revisit_edge():
 
 
 def test_pose_tracker_gates_outlying_fixes():
-    from testbed.seed2.navigate import PoseTracker
+    from testbed.topomap.navigate import PoseTracker
 
     tr = PoseTracker()
     T = np.eye(4)

@@ -5,7 +5,7 @@ A stream holds, per camera frame: the stamp, the RGB image, the ground-truth cam
 object, its tight visible box (from the segmentation), visible fraction and distance. Plus the
 episode's facts: intrinsics, extrinsics, objects, the ground-truth base trajectory.
 
-Cache: ``$DOPESLAM_CACHE/seed2_streams`` (default ``~/.cache/dopeslam/seed2_streams``), one ``.npz``
+Cache: ``$DOPESLAM_CACHE/topomap_streams`` (default ``~/.cache/dopeslam/topomap_streams``), one ``.npz``
 (arrays only, no pickle) + one ``.json`` per (scenario, seed, light, size, duration).
 """
 from __future__ import annotations
@@ -30,7 +30,7 @@ DEFAULT_SIZE = (640, 480)
 
 
 def cache_root() -> Path:
-    d = Path(os.environ.get("DOPESLAM_CACHE", Path.home() / ".cache" / "dopeslam")) / "seed2_streams"
+    d = Path(os.environ.get("DOPESLAM_CACHE", Path.home() / ".cache" / "dopeslam")) / "topomap_streams"
     d.mkdir(parents=True, exist_ok=True)
     return d
 

@@ -52,7 +52,7 @@ def load_shard_frames(data_dir, shard_ids, classes):
 def add_error(T_est, T_true, dims, half_turn: bool = True) -> float:
     """ADD: mean distance of the cuboid's key points under the two poses. With ``half_turn`` the truth may
     also be turned half about its vertical axis (the symmetry the training labels resolve by view, see
-    :func:`stack.dope_train.canonical_order`); the smaller error counts."""
+    :func:`stack.dope.train.canonical_order`); the smaller error counts."""
     pts = cuboid_points(dims)
     a = pts @ T_est[:3, :3].T + T_est[:3, 3]
     cands = [T_true[:3, :3]]
