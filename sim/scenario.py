@@ -7,6 +7,7 @@ and overrides its tables key by key; lists (furniture, objects) are replaced who
 """
 from __future__ import annotations
 
+import re
 import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
@@ -19,6 +20,10 @@ DEFAULT_SCENARIO = "experiment3_columns"
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Color = Annotated[list[Annotated[int, Field(ge=0, le=255)]], Field(min_length=3, max_length=3)]
+
+
+# An ``[expect]`` value: a comparison with a number (checked against the run's report by ``dopeslam test``).
+EXPECT_COMPARISON = re.compile(r"^\s*(>=|<=|==|!=|>|<)\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|true|false)\s*$")
 
 
 class ScenarioError(ValueError):
@@ -119,7 +124,21 @@ class Scenario(_Strict):
     route: Route
     sensors: Sensors = Field(default_factory=Sensors)
     extends: str | None = None
+    expect: dict[str, bool | int | float | str] = Field(
+        default_factory=dict, description='"dotted.path.in.report.json" = "OP NUMBER" (>=, <=, >, <, ==, !=), '
+        'plus min_pass_rate (0-1) over seeds; see docs/testing.md')
     source: str = Field("", exclude=True)
+
+    @field_validator("expect")
+    @classmethod
+    def _expect(cls, v):
+        for key, value in v.items():
+            if key == "min_pass_rate":
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
+                    raise ValueError(f"expect '{key}': expected a number from 0 to 1, got {value!r}")
+            elif isinstance(value, str) and not EXPECT_COMPARISON.match(value):
+                raise ValueError(f"expect '{key}': expected a comparison such as \">= 6\" or \"<= 0.05\", got {value!r}")
+        return v
 
     @model_validator(mode="after")
     def _inside_room(self):
