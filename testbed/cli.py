@@ -19,6 +19,7 @@ COMMAND_MODULES = [
     "testbed.commands.policy",
     "testbed.commands.topomap",
     "testbed.commands.loops",
+    "testbed.commands.test",
 ]
 
 

@@ -1,0 +1,1 @@
+"""Bundled test suites (TOML) for `dopeslam test`."""

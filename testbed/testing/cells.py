@@ -1,0 +1,92 @@
+"""Running scenario x seed cells: ``testbed.matrix`` (parallel, Ray) where it is installed, else the
+same contract sequentially here. A cell's result: {"cell", "status" ("ok"|"error"), "error",
+"report", "out_dir"}."""
+from __future__ import annotations
+
+import logging
+import re
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Cell:
+    scenario: str
+    seed: int
+    options: dict = field(default_factory=dict)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"0-9,20"`` -> [0, 1, ..., 9, 20] (order kept, duplicates dropped). ValueError names the part."""
+    try:
+        from testbed.matrix import parse_seeds as shared
+    except ImportError:
+        shared = None
+    if shared is not None:
+        return list(shared(text))
+    seeds: list[int] = []
+    for part in str(text).split(","):
+        part = part.strip()
+        m = re.fullmatch(r"(\d+)(?:\s*-\s*(\d+))?", part)
+        if not m or (m.group(2) is not None and int(m.group(2)) < int(m.group(1))):
+            raise ValueError(f"expected seeds such as 0-9,20 (non-negative integers, ranges low-high), got {part!r}")
+        lo, hi = int(m.group(1)), int(m.group(2) or m.group(1))
+        seeds.extend(s for s in range(lo, hi + 1) if s not in seeds)
+    return seeds
+
+
+def cell_dir(out_dir: Path, cell) -> Path:
+    name = Path(str(cell.scenario)).stem
+    tag = "_".join(f"{k}-{v}" for k, v in sorted(cell.options.items()) if k != "job") if cell.options else ""
+    tag = re.sub(r"[^A-Za-z0-9_.-]+", "_", tag)[:80]
+    return Path(out_dir) / (f"{name}__{tag}" if tag else name) / f"seed{cell.seed}"
+
+
+def run_sequential(cells, out_dir, progress: bool = True) -> list[dict]:
+    from testbed.testing.options import run_one
+
+    results = []
+    for i, cell in enumerate(cells):
+        d = cell_dir(Path(out_dir), cell)
+        d.mkdir(parents=True, exist_ok=True)
+        if progress:
+            log.info("cell %d/%d: %s seed %d %s", i + 1, len(cells), cell.scenario, cell.seed, cell.options or "")
+        try:
+            report = run_one(cell.scenario, cell.seed, cell.options, d)
+            results.append({"cell": cell, "status": "ok", "error": None, "report": _plain(report), "out_dir": str(d)})
+        except Exception as exc:  # a cell that fails is a result, the others still run
+            log.debug("cell failed:\n%s", traceback.format_exc())
+            results.append({"cell": cell, "status": "error", "error": f"{type(exc).__name__}: {exc}",
+                            "report": None, "out_dir": str(d)})
+    return results
+
+
+def _plain(report: dict) -> dict:
+    return {k: v for k, v in report.items() if not k.startswith("_")}
+
+
+def run_cells(cells, out_dir, jobs: int = 1, ray: bool = False, ray_address=None, progress: bool = True) -> list[dict]:
+    """Run ``dopeslam run`` cells through ``testbed.matrix`` when it is there; navigate cells (and
+    everything when it is not) here, one after the other. Results in the order of ``cells``."""
+    try:
+        from testbed import matrix
+    except ImportError:
+        matrix = None
+    nav = [i for i, c in enumerate(cells) if c.options.get("job") == "navigate"]
+    runs = [i for i, c in enumerate(cells) if c.options.get("job") != "navigate"]
+    results: list[dict | None] = [None] * len(cells)
+    if matrix is not None and runs:
+        mcells = [matrix.Cell(scenario=cells[i].scenario, seed=cells[i].seed, options=dict(cells[i].options))
+                  for i in runs]
+        for i, r in zip(runs, matrix.run_cells(mcells, out_dir, jobs=jobs, ray=ray, ray_address=ray_address,
+                                               progress=progress)):
+            results[i] = {**r, "cell": cells[i]}
+    elif runs:
+        for i, r in zip(runs, run_sequential([cells[i] for i in runs], out_dir, progress)):
+            results[i] = r
+    for i, r in zip(nav, run_sequential([cells[i] for i in nav], out_dir, progress)):
+        results[i] = r
+    return results
