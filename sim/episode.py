@@ -18,6 +18,7 @@ import pybullet as p
 from scipy.spatial.transform import Rotation
 
 from sim.camera import RenderWorker, default_camera_info, new_client, render_rgbd
+from sim.events import WorldEvents
 from sim.lidar import BeamPattern, BoxRayCaster
 from sim.objects import cuboid_keypoints
 from sim.robot import Jackal
@@ -121,6 +122,8 @@ class Episode:
         if render_worker is None:
             render_worker = os.environ.get("DOPESLAM_RENDER_WORKER", "0") == "1"
         self._render_worker = None
+        if self.sc.events:  # the worker's world would not follow the events
+            render_worker = False
         if self.use_camera and render_worker:  # started first: it builds its world while this one does
             self._render_worker = RenderWorker(self.sc, self.camera_info, renderer)
         ss = np.random.SeedSequence(self.seed)
@@ -130,6 +133,9 @@ class Episode:
         self.dt = 1.0 / self.sc.physics_hz
         p.setTimeStep(self.dt, physicsClientId=self.client)
         self.world = build_world(self.client, self.sc)
+        self.events = WorldEvents(self.world, self.sc.events) if self.sc.events else None
+        self.lidar_points = 0  # points in the sweeps so far ...
+        self.lidar_person_points = 0  # ... of them on people walking through
         x, y, yaw_deg = self.sc.robot.start
         self.robot = Jackal(self.client, (x, y, math.radians(yaw_deg)), self.rng_odom)
         self.caster = BoxRayCaster(self.world.boxes)
@@ -155,7 +161,29 @@ class Episode:
 
     @property
     def objects(self):
+        """The objects as they are now (after the last event so far; at the end: the final world)."""
         return self.world.objects
+
+    def objects_at(self, t: float):
+        """The objects as they were at time ``t`` (events applied up to then)."""
+        return self.events.truth_at(t) if self.events else list(self.world.objects)
+
+    @property
+    def event_log(self) -> list[dict]:
+        """What happened to the world: moves, removals, additions, walks started (time order)."""
+        return list(self.events.log) if self.events else []
+
+    def past_positions(self):
+        """(name, class, centroid in world) of each place an object stood and no longer stands."""
+        return self.events.past_positions() if self.events else []
+
+    def occluder_fraction(self, frame: CameraFrame) -> float:
+        """The fraction of the image covered by people walking through (from the segmentation)."""
+        seg = frame.extra.get("segmentation")
+        if seg is None or not self.events or not self.events.walkers:
+            return 0.0
+        ids = np.array(sorted(self.events.person_bodies))
+        return float(np.isin(seg & ((1 << 24) - 1), ids).mean())
 
     def light_at(self, t: float) -> float:
         """The light level at time t: the scenario's ``light_schedule`` if any, else ``light``."""
@@ -201,6 +229,8 @@ class Episode:
         for k in range(steps + 1):
             t = k * self.dt
             T_world_base = self.robot.T_world_base()
+            if self.events is not None and self.events.step(t, T_world_base[:2, 3]):
+                self._boxes_changed = True
             self.groundtruth.base_stamps.append(t)
             self.groundtruth.base_poses.append(T_world_base)
             if k > 0:
@@ -238,6 +268,9 @@ class Episode:
 
     def _lidar_scan(self, stamp: float, dirs, col_t, az) -> LidarScan:
         gt = self.groundtruth
+        if getattr(self, "_boxes_changed", False):  # objects moved or people walked: cast the world as it is now
+            self.caster = BoxRayCaster(self.world.boxes)
+            self._boxes_changed = False
         n = int(round(self.beams.period / self.dt)) + 2
         T_wb = _interpolate_poses(np.asarray(gt.base_stamps[-n:]), np.asarray(gt.base_poses[-n:]), stamp + col_t)
         T_ws = T_wb @ self._T_base_velodyne  # (A, 4, 4) sensor pose at each column's firing time
@@ -259,6 +292,9 @@ class Episode:
         ring = np.broadcast_to(np.arange(Rr, dtype=np.uint16)[None, :], (A, Rr))[ok]
         times = np.broadcast_to(col_t[:, None], (A, Rr))[ok]
         intensity = (100.0 * self.caster.refl[hit[ok]]).astype(np.float32)  # reflectivity of the surface hit
+        self.lidar_points += int(r_ok.size)
+        if self.events is not None and self.events.walkers:
+            self.lidar_person_points += int(np.isin(hit[ok], list(self.events.person_boxes)).sum())
         return LidarScan(stamp, points.astype(np.float32), times.astype(np.float64), ring.copy(), intensity,
                          "velodyne", T_ws[0].copy())
 

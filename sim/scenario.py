@@ -14,6 +14,9 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from sim.events import Event, check_events
+from sim.faults import Faults
+
 SCENES_DIR = Path(__file__).parent / "scenes"
 DEFAULT_SCENARIO = "experiment3_columns"
 
@@ -123,6 +126,9 @@ class Scenario(_Strict):
     robot: Robot
     route: Route
     sensors: Sensors = Field(default_factory=Sensors)
+    events: list[Event] = Field(default_factory=list, description="objects moved, removed, added; people "
+                                "walking (sim/events.py)")
+    faults: Faults = Field(default_factory=Faults, description="sensor faults (sim/faults.py)")
     extends: str | None = None
     expect: dict[str, bool | int | float | str] = Field(
         default_factory=dict, description='"dotted.path.in.report.json" = "OP NUMBER" (>=, <=, >, <, ==, !=), '
@@ -232,6 +238,14 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
     names = [o.name for o in sc.objects]
     if len(set(names)) != len(names):
         raise ScenarioError(f"{path}: field 'objects': object names must be unique, got {names}")
+    for i, e in enumerate(sc.events):
+        if e.kind == "add" and e.cls not in catalog:
+            raise ScenarioError(f"{path}: field 'events.{i}.class': expected one of {sorted(catalog)}, got {e.cls!r}")
+    try:
+        check_events(sc)
+    except ValueError as exc:
+        field, _, msg = str(exc).partition(": ")
+        raise ScenarioError(f"{path}: field '{field}': {msg}") from None
     sc.source = str(path)
     return sc
 
