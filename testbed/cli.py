@@ -44,7 +44,17 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
-        return int(args.func(args) or 0)
+        if not getattr(args, "json", False):
+            return int(args.func(args) or 0)
+        # --json: only JSON on stdout; what the command prints (and the renderer's chatter) goes to stderr.
+        # A command that supports it leaves its result in args.json_result.
+        from testbed.testing.jsonout import stdout_to_stderr
+
+        with stdout_to_stderr() as emit:
+            rc = int(args.func(args) or 0)
+            if getattr(args, "json_result", None) is not None:
+                emit(args.json_result)
+        return rc
     except KeyboardInterrupt:
         return 130
 

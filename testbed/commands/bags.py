@@ -36,6 +36,7 @@ def register(sub) -> None:
                    help="close loops (key frames from the colour images + LiDAR) and place labels on the corrected trajectory")
     p.add_argument("--vocabulary", default=None, help="place-recognition vocabulary .npz (default: the bundled one)")
     add_dope_options(p)
+    p.add_argument("--json", action="store_true", help="print the report (report.json's content) as JSON on stdout (logs on stderr)")
     p.set_defaults(func=replay)
 
 
@@ -71,6 +72,7 @@ def replay(args) -> int:
                             loop_closure=args.loop_closure, vocabulary=args.vocabulary)
     except BagError as exc:
         raise SystemExit(f"error: {exc}") from None
+    args.json_result = report  # --json (testbed/cli.py)
     print_replay_summary(report)
     print(f"wrote {args.out}/report.json, labels.xlsx, labels.json, map.png, estimate_tum.txt"
           + (", groundtruth_tum.txt" if report["ground_truth"]["trajectory"] else "")

@@ -14,6 +14,7 @@ def register(sub) -> None:
     p.add_argument("--no-wheel", action="store_true", help="do not score wheel odometry")
     p.add_argument("--loop-closure", action="store_true",
                    help="close loops (vocabulary tree over camera key frames, LiDAR verification, pose graph)")
+    p.add_argument("--json", action="store_true", help="print the scores as JSON on stdout (logs on stderr)")
     p.set_defaults(func=run)
 
 
@@ -33,6 +34,7 @@ def run(args) -> int:
     if "wheel_odometry" in report:
         brief["wheel_odometry"] = {k: report["wheel_odometry"][k] for k in
                                    ("ate_rmse_m", "ate_rmse_umeyama_m", "rpe_trans_pct", "rpe_rot_deg_per_m")}
+    args.json_result = brief  # --json (testbed/cli.py)
     print(json.dumps(brief, indent=2))
     print(f"wrote {args.out}/odometry.json, estimate_tum.txt, groundtruth_tum.txt, odometry_topdown.png")
     return 0

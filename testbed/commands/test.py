@@ -29,7 +29,6 @@ def run(args) -> int:
     import sys
 
     from testbed.testing.baseline import BaselineError, load_baseline
-    from testbed.testing.jsonout import stdout_to_stderr
     from testbed.testing.runner import print_results, run_plan, update_baseline
     from testbed.testing.suite import SuiteError, load_plan
 
@@ -48,13 +47,11 @@ def run(args) -> int:
             baseline = load_baseline(args.baseline)
     except (SuiteError, BaselineError) as e:
         return usage(str(e))
-    with stdout_to_stderr(args.json) as emit:
-        summary, regressions = run_plan(plan, args.out, jobs=args.jobs, ray=args.ray, ray_address=args.ray_address,
-                                        baseline=baseline, junit=args.junit)
-        print_results(summary, regressions, sys.stderr if args.json else sys.stdout)
-        if args.update_baseline:
-            print(f"baseline written: {update_baseline(summary, args.baseline)}", file=sys.stderr)
-        print(f"wrote {args.out}/summary.json, junit.xml, report.html", file=sys.stderr)
-        if args.json:
-            emit(summary)
+    summary, regressions = run_plan(plan, args.out, jobs=args.jobs, ray=args.ray, ray_address=args.ray_address,
+                                    baseline=baseline, junit=args.junit)
+    print_results(summary, regressions, sys.stdout)
+    if args.update_baseline:
+        print(f"baseline written: {update_baseline(summary, args.baseline)}", file=sys.stderr)
+    print(f"wrote {args.out}/summary.json, junit.xml, report.html", file=sys.stderr)
+    args.json_result = summary  # printed by the CLI with --json
     return 0 if summary["passed"] else 1
