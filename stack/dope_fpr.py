@@ -53,6 +53,7 @@ from stack.dope.depth_refine import refine_translation
 from stack.dope.depth_window import preprocess_depth, sliding_windows, window_content
 from stack.dope.net import N_AFFINITY, N_BELIEF, STRIDE, DopeNet, load_weights
 from stack import metrics
+from stack.config import torch_threads
 from stack.dope.targets import to_input_px
 from stack.messages import CameraFrame, Detection
 
@@ -398,12 +399,8 @@ class DopeDetector:
         self.input = input
         self.weights_path = Path(weights) if weights is not None else default_weights(input)
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-        if threads is None and os.environ.get("DOPESLAM_TORCH_THREADS"):
-            try:
-                threads = int(os.environ["DOPESLAM_TORCH_THREADS"])
-            except ValueError:
-                raise ValueError("environment variable DOPESLAM_TORCH_THREADS: expected an integer, "
-                                 f"got {os.environ['DOPESLAM_TORCH_THREADS']!r}") from None
+        if threads is None:
+            threads = torch_threads()  # DOPESLAM_TORCH_THREADS (stack.config); a bad value: ConfigError
         if threads:
             torch.set_num_threads(threads)
         self.model, self.weights_extra = load_weights(self.weights_path, self.device)
@@ -431,12 +428,15 @@ class DopeDetector:
         if self.colour_check:
             self.colour = colour if isinstance(colour, ColourModel) else ColourModel.load(
                 colour if colour is not None else default_colour_model_path())
+        self.thresholds_path: Path | None = None  # the thresholds' file, when they came from one
         if isinstance(thresholds, FprThresholds):
             self.thresholds = thresholds
         elif thresholds is not None:
             self.thresholds = FprThresholds.load(thresholds)
+            self.thresholds_path = Path(thresholds)
         else:
             p = self.weights_path.parent / f"fpr_thresholds_{input}.json"
+            self.thresholds_path = p if p.exists() else None
             self.thresholds = FprThresholds.load(p) if p.exists() else FprThresholds()
             if not p.exists() and fpr:
                 log.warning("no FPR thresholds beside %s: FPR passes everything until calibrated", self.weights_path)

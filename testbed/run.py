@@ -103,11 +103,15 @@ def score_trajectory(stamps, T_map_base, ep, T_world_map) -> dict:
             "rpe_trans_pct": r.trans_pct, "rpe_rot_deg_per_m": r.rot_deg_per_m, "poses": int(len(stamps))}
 
 
-def make_detector(input_mode: str, stages: int, fpr: bool, weights=None):
+def make_detector(input_mode: str, stages: int, fpr: bool, weights=None, config=None):
+    """DOPE + FPR for the simulator's classes; ``config`` (a ``stack.config.DetectorConfig``), when
+    given, sets everything (the other arguments are then ignored)."""
     from sim.objects import load_catalog
     from stack.dope_fpr import DopeDetector
 
     dims = {c: s.dims for c, s in load_catalog().items()}
+    if config is not None:
+        return DopeDetector(dims=dims, **config.dope_kwargs())
     return DopeDetector(weights=weights, input=input_mode, stages=stages, fpr=fpr, dims=dims)
 
 
@@ -123,7 +127,7 @@ def detector_name(detector) -> str:
 def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_mode="rgb", stages=6, fpr=True,
                 policy="robust-mean", duration=None, weights=None, detector=None, dope_every: int = 1,
                 write_outputs: bool = True, keep_detections: bool = False, bag_writer=None,
-                results_bag=None, loop_closure: bool = False) -> dict:
+                results_bag=None, loop_closure: bool = False, config=None) -> dict:
     """One simulated episode through the stack's pipeline (:class:`stack.pipeline.DopeSlam`), scored.
 
     ``detector``: any :class:`stack.interfaces.Detector` (default: DOPE + FPR for ``input_mode``,
@@ -134,13 +138,21 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     episode as it runs (``testbed/record.py``); ``results_bag``: where the results bag goes (default
     OUT/results_bag). ``loop_closure``: key frames and scans also go to a loop closer
     (``testbed/loop_closing.py``); at the end the trajectory is corrected and every fused detection
-    is fused again with it."""
+    is fused again with it. ``config``: a ``stack.config.StackConfig`` (or ``testbed.settings.RunConfig``)
+    whose settings replace ``input_mode``, ``stages``, ``fpr``, ``weights``, ``dope_every`` and
+    ``loop_closure`` and set the odometry, evidence, store and loop closure; it is written to
+    OUT/config.toml and the report gets its ``provenance``."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    detector = detector or make_detector(input_mode, stages, fpr, weights)
+    if config is not None:
+        d = config.detector
+        input_mode, stages, fpr, weights, dope_every = d.input, d.stages, d.fpr, d.weights, d.every
+        loop_closure = config.loop_closure.enabled
+        _check_config(config)
+    detector = detector or make_detector(input_mode, stages, fpr, weights, None if config is None else config.detector)
     dims = {c: s.dims for c, s in load_catalog().items()}
     wall0 = time.perf_counter()
     with Episode(scenario, seed=seed, duration=duration, light=light) as ep:
@@ -155,10 +167,14 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         if loop_closure:
             from testbed.loop_closing import LoopClosingRun
 
-            lc = LoopClosingRun()
-        odom = LidarOdometry(ep.T_base_velodyne)
+            lc = LoopClosingRun() if config is None else \
+                LoopClosingRun(config.loop_closure.vocabulary, config.loop_closure.closure_config())
+        odom = LidarOdometry(ep.T_base_velodyne, None if config is None else config.odometry)
         pipe = DopeSlam(odom, detector, ep.T_base_camera, dims, policy, loop_closer=lc, detect_every=dope_every,
                         keep_observations=keep_detections)
+        if config is not None:  # the store as configured (before the first message)
+            pipe.store = ObjectStore(dims=dims, gate_m=config.store.gate_m, policy=policy,
+                                     evidence=config.evidence_or_none())
         dlog = DetectionLog()
         all_dets: list[tuple[Detection, bool]] = []
         simulation_s = 0.0
@@ -186,6 +202,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
                 log.info("t = %5.1f s of %.0f s: %d scans, %d images, %d map objects", msg.stamp, ep.duration,
                          len(odom), dlog.frames, len(pipe.store))
         result = pipe.finish()
+        if config is not None and lc is not None:  # loop closure placed the map again in a fresh store
+            result.store.evidence = config.evidence_or_none()
+            result.store.publish()
         dlog.seconds = pipe.timing["detection"]
         timing = {"simulation": simulation_s, "odometry": pipe.timing["odometry"], "dope": pipe.timing["detection"],
                   "fusion": pipe.timing["fusion"]}
@@ -214,7 +233,16 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             "map_floor": None if store.floor is None else {"normal": [float(v) for v in store.floor[0]],
                                                            "d_m": store.floor[1]},
         }
+        if config is not None:
+            from testbed.provenance import detector_files, provenance
+
+            w, t = detector_files(detector)
+            report["provenance"] = provenance(ep.seed, getattr(ep.sc, "source", None), w, t)
         if write_outputs:
+            if config is not None:
+                from stack.config import write_config
+
+                write_config(config, out / "config.toml")
             write_json(out / "report.json", report)
             store.save(out / "labels.xlsx", overwrite=True)
             store.save(out / "labels.json", overwrite=True)
@@ -232,6 +260,18 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             report["_T_world_map"] = T_world_map
             report["_objects"] = list(ep.objects)
         return report
+
+
+def _check_config(config) -> None:
+    """Settings this job cannot apply are errors, not silently ignored."""
+    from stack.config import ConfigError, StoreConfig
+
+    if config.components.odometry:
+        raise ConfigError(f"key 'components.odometry': {config.components.odometry!r}: this job runs the "
+                          "bundled LiDAR odometry only; set it to null")
+    if config.loop_closure.enabled and config.store.gate_m != StoreConfig().gate_m:
+        raise ConfigError("key 'store.gate_m': with loop_closure.enabled the map is placed again with the "
+                          f"default gate ({StoreConfig().gate_m} m); leave it at the default")
 
 
 def _map_png(path, ep, T_world_map, poses, map_points, labels, report) -> None:

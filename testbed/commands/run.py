@@ -4,16 +4,24 @@ from __future__ import annotations
 
 import argparse
 
+from testbed.commands.options import add_config_options, config_error, config_from_args
 
-def add_dope_options(p: argparse.ArgumentParser, defaults: bool = True) -> None:
+
+def add_dope_options(p: argparse.ArgumentParser, defaults: bool = True,
+                     unset: str = " (default: the experiment's own)") -> None:
     """The options of every command that runs DOPE. ``defaults=False``: unset options are None, so the
-    command (e.g. an experiment with the paper's own input) keeps its default."""
+    command (e.g. an experiment with the paper's own input, or the config's) keeps its default, and
+    ``unset`` ends the help."""
     p.add_argument("--input", dest="input_mode", choices=["rgb", "depth"], default="rgb" if defaults else None,
-                   help="DOPE input image" + ("" if defaults else " (default: the experiment's own)"))
+                   help="DOPE input image" + ("" if defaults else unset))
     p.add_argument("--stages", type=int, choices=range(1, 7), default=6 if defaults else None, metavar="1-6",
-                   help="DOPE stages to run")
-    p.add_argument("--fpr", action=argparse.BooleanOptionalAction, default=True, help="false-positive reduction")
+                   help="DOPE stages to run" + ("" if defaults else unset))
+    p.add_argument("--fpr", action=argparse.BooleanOptionalAction, default=True if defaults else None,
+                   help="false-positive reduction" + ("" if defaults else unset))
     p.add_argument("--weights", default=None, help="weights file (default: the shipped ones for --input)")
+
+
+CONFIG_DEFAULT = " (default: the config's, see --config and --set)"
 
 
 def register(sub) -> None:
@@ -23,8 +31,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--light", type=float, default=None, help="override the scenario's light level (0-1)")
     p.add_argument("--duration", type=float, default=None)
-    p.add_argument("--policy", default="robust-mean",
-                   help="labelling policy: last, last-fpr, best-score, robust-mean, ..., or MODULE:FUNCTION "
+    p.add_argument("--policy", default=None,
+                   help="labelling policy: last, last-fpr, best-score, robust-mean (default), ..., or MODULE:FUNCTION "
                         "(observations -> stack.object_store.Label or None)")
     p.add_argument("--detector", default=None, metavar="MODULE:CLASS",
                    help="your detector instead of DOPE: a class constructed with no arguments, with "
@@ -33,13 +41,17 @@ def register(sub) -> None:
                         "testbed.oracle_detector:OracleDetector")
     p.add_argument("--loop-closure", action="store_true",
                    help="close loops (vocabulary tree + LiDAR verification + pose graph); labels move with them")
-    add_dope_options(p)
+    add_dope_options(p, defaults=False, unset=CONFIG_DEFAULT)
+    add_config_options(p)
     p.set_defaults(func=run)
 
     p = sub.add_parser("score", help="publish saved runs' maps again (evidence settings) and score the whole map")
     p.add_argument("runs", nargs="+", help="folders written by `dopeslam run`")
-    p.add_argument("--set", dest="settings", action="append", default=[], metavar="FIELD=VALUE",
-                   help="an evidence setting (stack.evidence.EvidenceConfig), e.g. min_observations=3")
+    p.add_argument("--set", dest="settings", action="append", default=[], metavar="evidence.KEY=VALUE",
+                   help="an evidence setting ([evidence] of docs/configuration.md), e.g. evidence.min_observations=3 "
+                        "(evidence. may be left out)")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="settings file whose [evidence] section applies (e.g. a run's config.toml)")
     p.add_argument("--out", default=None, help="write the scores as JSON here")
     p.set_defaults(func=score)
 
@@ -47,19 +59,28 @@ def register(sub) -> None:
 def run(args) -> int:
     import sys
 
+    from stack.config import ConfigError
     from stack.interfaces import ImportPathError, load_detector, resolve_policy
     from testbed.run import print_summary, run_episode
 
     try:
-        policy = resolve_policy(args.policy)
-        detector = load_detector(args.detector) if args.detector else None
+        config = config_from_args(args)
+    except ConfigError as e:
+        return config_error("run", e)
+    try:
+        policy = resolve_policy(config.store.policy)
+        detector = load_detector(config.components.detector) if config.components.detector else None
     except ImportPathError as e:
         print(f"dopeslam run: --{e}", file=sys.stderr)  # "--detector 'x:Y': what is wrong"
         return 2
-    report = run_episode(args.scenario, args.out, args.seed, args.light, args.input_mode, args.stages, args.fpr,
-                         policy, args.duration, args.weights, detector=detector, loop_closure=args.loop_closure)
+    r = config.run
+    try:
+        report = run_episode(r.scenario, args.out, r.seed, r.light, policy=policy, duration=r.duration,
+                             detector=detector, config=config)
+    except ConfigError as e:
+        return config_error("run", e)
     print_summary(report)
-    print(f"wrote {args.out}/report.json, labels.xlsx, map.png, estimate_tum.txt, groundtruth_tum.txt")
+    print(f"wrote {args.out}/report.json, config.toml, labels.xlsx, map.png, estimate_tum.txt, groundtruth_tum.txt")
     return 0
 
 
@@ -68,19 +89,24 @@ def score(args) -> int:
     import sys
 
     import numpy as np
-    from pydantic import ValidationError
 
+    from stack.config import ConfigError, parse_assignment, resolve_config
     from stack.evidence import EvidenceConfig
     from testbed.scoring import RunDirError, rescore_run
+    from testbed.settings import RunConfig
 
     try:
-        fields = dict(s.split("=", 1) for s in args.settings)
-        evidence = EvidenceConfig(**fields)
-    except ValueError as e:
-        first = e.errors()[0] if isinstance(e, ValidationError) else None
-        where = f"field '{first['loc'][0]}': {first['msg']}" if first else "expected FIELD=VALUE"
-        print(f"dopeslam score: --set {where}; fields: {sorted(EvidenceConfig.model_fields)}", file=sys.stderr)
-        return 2
+        sets = []
+        for text in args.settings:
+            key, value = parse_assignment(text)
+            key = f"evidence.{key}" if key in EvidenceConfig.model_fields else key  # the short form
+            if not key.startswith("evidence."):
+                raise ConfigError(f"--set {text}: only evidence.KEY settings apply to saved runs; "
+                                  f"keys {sorted(EvidenceConfig.model_fields)}")
+            sets.append(f"{key}={value}")
+        evidence = resolve_config(args.config, sets, model=RunConfig).evidence
+    except ConfigError as e:
+        return config_error("score", e)
     rows = []
     for run_dir in args.runs:
         try:

@@ -1,0 +1,67 @@
+"""The harness's settings: the run-level keys beside the stack's config, and the environment.
+
+:class:`RunConfig` is :class:`stack.config.StackConfig` with one more section, ``[run]``: what a
+simulated episode is (scenario, seed, light, duration). Commands that simulate resolve it with
+:func:`stack.config.resolve_config` (``model=RunConfig``); ``dopeslam replay`` reads the same files
+and ignores ``[run]``. Short names for ``--set``/``--grid``: the stack's (``input``, ``stages``,
+``fpr``, ...) and ``scenario``, ``seed``, ``light``, ``duration``.
+
+Environment variables of the machine (they change where things go or how fast, not what comes
+out) are read here and nowhere else in the harness (the simulator, which imports no harness code,
+reads its two itself):
+
+    DOPESLAM_CACHE          root of the caches (default ~/.cache/dopeslam): perception/, vocabulary/,
+                            topomap_streams/; the simulator keeps its textures in assets/ under it
+    DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode)
+    DOPESLAM_TORCH_THREADS  torch threads of the detector (read by stack.config.torch_threads)
+
+Configuration keys come from ``DOPESLAM_SECTION__KEY`` variables (a double underscore), see
+:mod:`stack.config`.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import ClassVar
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from stack.config import StackConfig
+
+ENV_CACHE = "DOPESLAM_CACHE"
+
+
+class RunSection(BaseModel):
+    """A simulated episode; null: the scenario's own."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    scenario: str | None = Field(None, description="bundled scenario name or TOML path (null: the default scenario)")
+    seed: int | None = Field(None, ge=0, description="drives everything random (null: the scenario's seed)")
+    light: float | None = Field(None, ge=0, le=1, description="light level 0-1 for the whole episode (null: the scenario's)")
+    duration: float | None = Field(None, gt=0, description="seconds simulated (null: the scenario's)")
+
+
+class RunConfig(StackConfig):
+    """The stack's config and the episode it runs in."""
+
+    ALIASES: ClassVar[dict[str, str]] = {**StackConfig.ALIASES, "scenario": "run.scenario", "seed": "run.seed",
+                                         "light": "run.light", "duration": "run.duration"}
+
+    run: RunSection = Field(default_factory=RunSection)
+
+    def stack(self) -> StackConfig:
+        """The stack's part (every section but ``[run]``)."""
+        return StackConfig(**{k: getattr(self, k) for k in StackConfig.model_fields})
+
+
+def cache_dir(name: str, environ: Mapping[str, str] | None = None, create: bool = True) -> Path:
+    """``$DOPESLAM_CACHE/NAME`` (default ``~/.cache/dopeslam/NAME``), created unless ``create=False``."""
+    environ = os.environ if environ is None else environ
+    root = environ.get(ENV_CACHE) or Path.home() / ".cache" / "dopeslam"
+    d = Path(root).expanduser() / name
+    if create:
+        d.mkdir(parents=True, exist_ok=True)
+    return d
+
