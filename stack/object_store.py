@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from stack.evidence import CANDIDATE, LABEL, EvidenceConfig, assess
 from stack.messages import Detection
+from stack.retire import RETIRED, revive
 from stack.transforms import from_xyz_quat, to_xyz_quat
 
 COLUMNS = ["id", "class", "x", "y", "z", "qx", "qy", "qz", "qw", "size_x", "size_y", "size_z",
@@ -204,9 +205,10 @@ class MapObject:
     observations: int = 0
     score: float = math.nan
     edited: bool = False  # set by a person: the stack no longer moves it and saves keep it
-    status: str = LABEL  # "label": published on the map; "candidate": kept, not (yet) a label
+    status: str = LABEL  # "label": published; "candidate": kept, not (yet) a label; "retired": its place seen empty
     reason: str = ""  # why a candidate is not a label
     history: list[Observation] = field(default_factory=list)
+    past: list[Observation] = field(default_factory=list)  # observations before it was retired and seen again
 
     @property
     def is_label(self) -> bool:
@@ -251,7 +253,7 @@ class ObjectStore:
         Objects edited by hand keep the status a person gave them, and objects loaded without their
         observation history (from .xlsx) keep the status they were saved with.
         """
-        judged = [o for o in self if o.history and not o.edited]
+        judged = [o for o in self if o.history and not o.edited and o.status != RETIRED]
         if self.evidence is None:
             for obj in judged:
                 obj.status, obj.reason = LABEL, ""
@@ -303,6 +305,8 @@ class ObjectStore:
             obj = MapObject(self.next_id(), obs.cls, np.array(obs.xyz, dtype=float),
                             np.array(obs.quat_xyzw, dtype=float), self.dims[obs.cls].copy(), obs.stamp, obs.stamp)
             self.objects[obj.id] = obj
+        if obj.status == RETIRED and not obj.edited:
+            revive(obj)  # seen again: it comes back, labelled from what is seen from now on
         obj.history.append(obs)
         obj.observations += 1
         obj.first_seen, obj.last_seen = min(obj.first_seen, obs.stamp), max(obj.last_seen, obs.stamp)
@@ -532,8 +536,9 @@ def _parse_row(path: Path, row: int, v: Mapping, classes: set[str] | None) -> Ma
         raise ObjectStoreError(path, row, "last_seen", f"last_seen {last_seen} is before first_seen {first_seen}")
     status = v.get("status")
     status = LABEL if _empty(status) else str(status).strip().lower()
-    if status not in (LABEL, CANDIDATE):
-        raise ObjectStoreError(path, row, "status", f"expected {LABEL!r} or {CANDIDATE!r}, got {v.get('status')!r}")
+    if status not in (LABEL, CANDIDATE, RETIRED):
+        raise ObjectStoreError(path, row, "status", f"expected {LABEL!r}, {CANDIDATE!r} or {RETIRED!r}, "
+                               f"got {v.get('status')!r}")
     reason = v.get("reason")
     return MapObject(
         id=integer("id"), cls=cls, xyz=np.array([number(c) for c in ("x", "y", "z")]), quat_xyzw=quat / norm,
