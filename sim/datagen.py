@@ -16,9 +16,7 @@ saved size), location (m, camera optical frame), quaternion (x, y, z, w), pixel 
 """
 from __future__ import annotations
 
-import json
 import logging
-import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from sim.camera import DepthNoise, apply_color_noise, apply_depth_noise, default_camera_info, gl_matrices, hardware
 from sim.objects import CLASSES, cuboid_keypoints, load_catalog, spawn_object
+from stack.io import atomic_path, write_json
 
 log = logging.getLogger(__name__)
 FAR_AWAY = np.array([0.0, 0.0, -50.0])
@@ -239,17 +238,12 @@ class _World:
 
 
 def _atomic_save_npz(path: Path, **arrays) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp.npz")
-    os.close(fd)
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, **arrays)
 
 
 def _atomic_save_json(path: Path, obj) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(obj, f)
-    os.replace(tmp, path)
+    write_json(path, obj, indent=None)
 
 
 def generate_shard(cfg: DatagenConfig, shard: int) -> Path:

@@ -21,13 +21,13 @@ Odometry definitions (poses are 4x4 ``T_world_base`` at matching timestamps):
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from stack.io import write_text
 from stack.transforms import inv, make_T
 
 # --------------------------------------------------------------------------------------------
@@ -154,19 +154,16 @@ def write_tum(path: str | os.PathLike, stamps: np.ndarray, poses: np.ndarray) ->
     if len(stamps) != len(p):
         raise ValueError(f"{len(stamps)} stamps for {len(p)} poses")
     q = Rotation.from_matrix(np.asarray(poses, dtype=float)[:, :3, :3]).as_quat() if len(p) else np.zeros((0, 4))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write("# timestamp tx ty tz qx qy qz qw\n")
-            for t, xyz, quat in zip(stamps, p, q):
-                f.write(f"{t:.9f} " + " ".join(f"{v:.9f}" for v in (*xyz, *quat)) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    lines = ["# timestamp tx ty tz qx qy qz qw\n"]
+    lines += [f"{t:.9f} " + " ".join(_fixed(v) for v in (*xyz, *quat)) + "\n" for t, xyz, quat in zip(stamps, p, q)]
+    write_text(path, "".join(lines))
     return path
+
+
+def _fixed(v: float) -> str:
+    """9 decimals, with no "-0.000000000" (a sign that only float noise decides)."""
+    text = f"{v:.9f}"
+    return text[1:] if text == "-0.000000000" else text
 
 
 def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:

@@ -15,11 +15,8 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,6 +27,7 @@ from openpyxl.utils.exceptions import InvalidFileException
 from scipy.spatial.transform import Rotation
 
 from stack.evidence import CANDIDATE, LABEL, EvidenceConfig, assess
+from stack.io import atomic_path, write_json
 from stack.messages import Detection
 from stack.retire import RETIRED, revive
 from stack.transforms import from_xyz_quat, to_xyz_quat
@@ -384,25 +382,9 @@ def _writer(path: Path):
     raise ValueError(f"{path}: unknown store format {suffix!r}; expected .xlsx or .json")
 
 
-@contextmanager
-def _atomic(path: Path):
-    """Yield a temporary path beside ``path``; on success it replaces ``path`` in one step."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        os.chmod(tmp, path.stat().st_mode & 0o777 if path.exists() else 0o644)  # mkstemp makes it 0600
-        yield tmp
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _write_xlsx(path: Path, objects: Sequence[MapObject], floor=None) -> None:
     table = pd.DataFrame([o.row() for o in objects], columns=COLUMNS)
-    with _atomic(path) as tmp, open(tmp, "wb") as f:  # our handle: closed even if pandas fails midway
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:  # our handle: closed even if pandas fails midway
         with pd.ExcelWriter(f, engine="openpyxl") as writer:
             table.to_excel(writer, sheet_name=SHEET, index=False)
 
@@ -413,8 +395,7 @@ def _write_json(path: Path, objects: Sequence[MapObject], floor=None) -> None:
            "objects": [
         {**{c: _nan_to_none(v) for c, v in o.row().items()}, "history": [h.to_dict() for h in o.history]}
         for o in objects]}
-    with _atomic(path) as tmp:
-        Path(tmp).write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+    write_json(path, doc, indent=1)
 
 
 def _read_xlsx(path: Path, classes: set[str] | None) -> list[MapObject]:

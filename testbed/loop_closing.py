@@ -159,7 +159,7 @@ def run_loop_closure(scenario: str = "office_loop", out_dir: str = "out/loop_clo
     from stack.lidar_slam import LidarOdometry
     from stack.messages import LidarScan
     from stack.metrics import ate_rmse_umeyama, rpe
-    from testbed.simulate import write_json
+    from testbed.io import write_json
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -253,7 +253,7 @@ def run_loop_eval(scenario: str = DEFAULT_SCENARIO, out_dir: str = "out/loop_eva
                   depth: int = 3, keep_key_frames: bool = False) -> dict:
     """``keep_key_frames``: save the rendered key frames to OUT/key_frames.npz, and reuse that file
     (if it is there) instead of simulating again."""
-    from testbed.simulate import write_json
+    from testbed.io import write_json
     from testbed.vocabulary import key_frame_images
 
     out = Path(out_dir)

@@ -17,10 +17,8 @@ The known start pose: ``map`` is ``base_link`` at the first registered scan, so 
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -31,6 +29,8 @@ from stack import metrics
 from stack.lidar_slam import LidarOdometry, LidarOdometryConfig, WheelOdometryTrack
 from stack.messages import CameraFrame, LidarScan, WheelOdometry
 from stack.transforms import transform_points
+from testbed.io import write_json
+from testbed.plots import save
 
 log = logging.getLogger(__name__)
 
@@ -83,18 +83,6 @@ class _MapAccumulator:
         return self.chunks[0] if self.chunks else np.empty((0, 3))
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def _topdown_png(path: Path, map_world: np.ndarray, gt: np.ndarray, est: np.ndarray,
                  wheel: np.ndarray | None, title: str) -> None:
     import matplotlib
@@ -117,16 +105,7 @@ def _topdown_png(path: Path, map_world: np.ndarray, gt: np.ndarray, est: np.ndar
     ax.set_ylabel("y (m, world)")
     ax.set_title(title, fontsize=9)
     ax.legend(loc="lower left", fontsize=7, framealpha=0.8)
-    fig.tight_layout()
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110)
-        os.replace(tmp, path)
-    finally:
-        plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    save(fig, path)
 
 
 def run_odometry(scenario=None, seed: int | None = None, out_dir: str | os.PathLike = "out/odometry",
@@ -216,5 +195,5 @@ def run_odometry(scenario=None, seed: int | None = None, out_dir: str | os.PathL
                 title += f"; wheels ATE {100 * report['wheel_odometry']['ate_rmse_m']:.1f} cm"
             _topdown_png(out / "odometry_topdown.png", transform_points(T_world_map, accumulated.points()),
                          gt, est, wheel_world, title)
-    _atomic_write_text(out / "odometry.json", json.dumps(report, indent=2) + "\n")
+    write_json(out / "odometry.json", report)
     return report

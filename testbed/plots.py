@@ -31,9 +31,15 @@ def draw_world(ax, world, route=None) -> None:
 
 
 def save(fig, path) -> None:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    """The figure as a PNG, atomically (a temporary file, then renamed onto ``path``)."""
+    from testbed.io import atomic_path
+
+    try:
+        fig.tight_layout()
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=110, format="png", metadata={"Software": None})
+    finally:
+        plt.close(fig)
 
 
 def scene_figure(world, route, path_xy: np.ndarray | None = None, title: str = ""):

@@ -24,7 +24,7 @@ from stack.object_store import ObjectStore
 from stack.pipeline import DopeSlam
 from stack.transforms import transform_points
 from testbed.scoring import score_map, summary_line
-from testbed.simulate import write_json
+from testbed.io import write_json
 
 log = logging.getLogger(__name__)
 

@@ -1,9 +1,7 @@
 """``dopeslam simulate``: run an episode with every sensor and write what it produced."""
 from __future__ import annotations
 
-import json
 import logging
-import os
 import time
 from pathlib import Path
 
@@ -13,15 +11,12 @@ import numpy as np
 from sim.episode import Episode
 from stack.messages import CameraFrame, LidarScan
 from stack.metrics import write_tum
+from testbed.io import write_json
 from testbed.plots import save, scene_figure
 
 log = logging.getLogger(__name__)
 
 
-def write_json(path: Path, data) -> None:
-    tmp = Path(str(path) + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
 
 
 def run_simulation(scenario=None, out_dir="out/simulate", seed=None, duration=None, samples: int = 3) -> dict:

@@ -19,13 +19,13 @@ quantile of its training boxes' distances (so most true boxes pass).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+
+from stack.io import write_json
 
 NAMES = ("black", "blue", "brown", "grey", "green", "orange", "pink", "purple", "red", "white", "yellow")
 
@@ -167,11 +167,7 @@ class ColourModel:
 
     def save(self, path: str | Path) -> None:
         path = Path(path)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            json.dump(self.to_json(), f, indent=1)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        write_json(path, self.to_json(), indent=1)
 
     @staticmethod
     def load(path: str | Path) -> "ColourModel":

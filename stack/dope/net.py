@@ -26,6 +26,8 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
+from stack.io import atomic_path
+
 N_BELIEF = 9  # 8 corners + centroid
 N_AFFINITY = 16  # 8 corners x (dx, dy)
 STRIDE = 8
@@ -157,8 +159,6 @@ def split_class(maps: torch.Tensor, cls_index: int, per_class: int) -> torch.Ten
 
 def save_weights(path, model: DopeNet, half: bool = True, extra: dict | None = None) -> None:
     """Plain state dict + config (loadable with ``torch.load(weights_only=True)``), written atomically."""
-    import os
-    import tempfile
     from pathlib import Path
 
     path = Path(path)
@@ -166,11 +166,8 @@ def save_weights(path, model: DopeNet, half: bool = True, extra: dict | None = N
              for k, v in model.state_dict().items()}
     blob = {"config": model.config.to_dict(), "state_dict": state, "extra": dict(extra or {})}
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    os.close(fd)
-    torch.save(blob, tmp)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(blob, tmp)
 
 
 def load_weights(path, device: str | torch.device = "cpu") -> tuple[DopeNet, dict]:

@@ -23,7 +23,6 @@ import logging
 import math
 import os
 import re
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -34,6 +33,7 @@ import torch
 
 from stack.dope.net import N_BELIEF, STRIDE, DopeNet, DopeNetConfig, expand_stages, save_weights
 from stack.dope.targets import make_targets, to_input_px
+from stack.io import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -344,10 +344,8 @@ def evaluate_keypoints(model: DopeNet, data: ShardData, indices, cfg: TrainConfi
 # --- loop ----------------------------------------------------------------------------------------
 
 def _atomic_torch_save(obj, path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    os.close(fd)
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def plot_loss(history: list[tuple[int, float]], path: Path, title: str = "DOPE training loss") -> None:
@@ -372,11 +370,11 @@ def plot_loss(history: list[tuple[int, float]], path: Path, title: str = "DOPE t
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp.png")
-    os.close(fd)
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=100, format="png")
+    finally:
+        plt.close(fig)
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:

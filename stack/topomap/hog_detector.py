@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +32,7 @@ import cv2
 import numpy as np
 
 from stack.dope.colour_names import ColourModel, box_histogram
+from stack.io import atomic_path
 
 log = logging.getLogger(__name__)
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
@@ -268,11 +267,8 @@ class HogDetector:
                   "biases": np.array([c.bias for c in self.components])}
         for i, c in enumerate(self.components):
             arrays[f"w{i}"] = c.w.astype(np.float32)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp.npz")
-        os.close(fd)
-        np.savez_compressed(tmp, **arrays)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            np.savez_compressed(tmp, **arrays)
         if colour_path is not None and self.colour is not None:
             self.colour.save(colour_path)
 

@@ -28,14 +28,13 @@ from __future__ import annotations
 import heapq
 import json
 import logging
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from stack.io import atomic_path, write_json
 from stack.topomap.mono_pose import (Features, MonoConfig, MonoVO, detect_features, grunert, match_features, orpe,
                              triangulate)
 from stack.transforms import inv
@@ -220,14 +219,9 @@ class TopoMap:
             arrays[f"n{n.id}_word_weights"] = n.word_weights.astype(np.float32)
             if n.place_desc is not None:
                 arrays[f"n{n.id}_place"] = n.place_desc.astype(np.float16)
-        fd, tmp = tempfile.mkstemp(dir=out, prefix="topo_map.npz", suffix=".tmp.npz")
-        os.close(fd)
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, out / "topo_map.npz")
-        fd, tmp = tempfile.mkstemp(dir=out, prefix="topo_map.json", suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            json.dump(meta, f, indent=1)
-        os.replace(tmp, out / "topo_map.json")
+        with atomic_path(out / "topo_map.npz") as tmp:
+            np.savez_compressed(tmp, **arrays)
+        write_json(out / "topo_map.json", meta, indent=1)  # last: its presence says the arrays are complete
         return out / "topo_map.json"
 
     @staticmethod

@@ -240,7 +240,7 @@ def table_markdown(result: dict) -> str:
 
 
 def write_outputs(result: dict, out_dir) -> tuple[Path, Path]:
-    from testbed.simulate import write_json
+    from testbed.io import write_json
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

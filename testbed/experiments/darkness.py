@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from testbed.run import run_episode
-from testbed.simulate import write_json
+from testbed.io import write_json
 
 log = logging.getLogger(__name__)
 LEVELS = (1.0, 0.5, 0.25, 0.1, 0.0)

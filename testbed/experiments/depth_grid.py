@@ -20,7 +20,7 @@ import numpy as np
 
 from stack.metrics import paper_accuracy, paper_distance_xz
 from testbed.experiments.localization import PAPER
-from testbed.simulate import write_json
+from testbed.io import write_json
 
 log = logging.getLogger(__name__)
 GRID_CM = {"P1": (-30.0, 60.0), "P2": (30.0, 80.0), "P3": (0.0, 110.0), "P4": (-25.0, 140.0), "P5": (20.0, 170.0)}

@@ -14,7 +14,7 @@ from stack.object_store import label_of
 from stack.transforms import transform_points
 from testbed.run import run_episode
 from testbed.scoring import FALSE_LABEL_M
-from testbed.simulate import write_json
+from testbed.io import write_json
 
 PAPER = Path(__file__).resolve().parent / "paper_results.json"  # the paper's figures, shipped with the package
 METHODS = ("original", "fpr", "best", "worst")

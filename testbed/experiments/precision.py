@@ -18,7 +18,7 @@ import numpy as np
 
 from stack.metrics import is_false_positive, precision_recall_f
 from testbed.experiments.localization import PAPER
-from testbed.simulate import write_json
+from testbed.io import write_json
 
 log = logging.getLogger(__name__)
 DISTANCE_M = 0.80

@@ -26,7 +26,7 @@ from pathlib import Path
 from stack.topomap.topological_map import score_map
 from testbed.topomap.navigate import build_map, load_detector, load_tree, node_truth
 from testbed.topomap.stream import camera_stream
-from testbed.simulate import write_json
+from testbed.io import write_json
 
 log = logging.getLogger(__name__)
 VISIBLE = 0.3

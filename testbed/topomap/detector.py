@@ -59,6 +59,8 @@ def train(data_dir: Path = DEFAULT_DATA, out: Path = DEFAULT_WEIGHTS, colour_out
             "components": [{"class": c.cls, "shape": list(c.shape)} for c in det.components],
             "seconds": time.perf_counter() - t0, "colour_thresholds": det.colour.thresholds}
     Path(out).with_suffix(".json").write_text(json.dumps(info, indent=1))
+    from testbed.io import write_json
+    write_json(Path(out).with_suffix(".json"), info, indent=1)
     log.info("saved %s and %s (%.0f s)", out, colour_out, info["seconds"])
     return info
 
@@ -185,7 +187,7 @@ def plot_pr(res: dict, path: Path, title: str) -> None:
 
 
 def run_eval(out: Path, data_dir: Path = DEFAULT_DATA, max_images: int | None = None, streams: bool = True) -> dict:
-    from testbed.simulate import write_json
+    from testbed.io import write_json
 
     out.mkdir(parents=True, exist_ok=True)
     det = HogDetector.load()

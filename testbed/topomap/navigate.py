@@ -391,7 +391,7 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
     from sim.episode import Episode
     from sim.imu import Gyro
     from sim.scenario import load_scenario
-    from testbed.simulate import write_json
+    from testbed.io import write_json
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -738,7 +738,7 @@ def batch(scenarios=("experiment3_columns", "shelf_corridor", "office_loop_twice
     """Ten seeded navigation runs per scenario, the object asked for cycling through the objects the
     map holds (seed k asks for the k mod n-th; those without a node are listed). Writes
     ``navigate_batch.json``."""
-    from testbed.simulate import write_json
+    from testbed.io import write_json
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

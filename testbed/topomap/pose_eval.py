@@ -206,7 +206,7 @@ def plot_scenario(res: dict, out: Path) -> None:
 
 
 def run(scenarios=DEFAULT_SCENARIOS, runs: int = 100, out: Path = Path("out/topomap/pose")) -> dict:
-    from testbed.simulate import write_json
+    from testbed.io import write_json
 
     out.mkdir(parents=True, exist_ok=True)
     cfg = MonoConfig()

@@ -14,7 +14,6 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +22,7 @@ import numpy as np
 
 from stack.messages import CameraInfo, ObjectTruth
 from stack.transforms import inv, transform_points
+from testbed.io import atomic_path, write_text
 
 log = logging.getLogger(__name__)
 STREAM_VERSION = 2
@@ -81,17 +81,12 @@ def _key(scenario: str, seed: int, light: float, size, duration) -> str:
 
 
 def _atomic_savez(path: Path, **arrays) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp.npz")
-    os.close(fd)
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, **arrays)
 
 
 def _atomic_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    write_text(path, text)
 
 
 def render_stream(scenario=None, seed: int | None = None, light: float | None = None, size=DEFAULT_SIZE,

@@ -1,0 +1,38 @@
+"""The harness's writes: the same atomic helpers as the stack (``stack.io``), plus the checks an
+output path must pass before any work starts.
+
+- ``check_new_output``: refuse (``OutputError``) to write over an existing path unless ``force``,
+  and never over an input, whatever ``force`` says.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Iterable
+
+from stack.errors import OutputError
+from stack.io import (atomic_path, clean_stale, output_dir, staging_entries, strict, strict_json, write_bytes,
+                      write_json, write_text)
+
+__all__ = ["atomic_path", "check_new_output", "clean_stale", "output_dir", "same_or_inside", "staging_entries",
+           "strict", "strict_json", "write_bytes", "write_json", "write_text"]
+
+
+def same_or_inside(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """Whether path ``a`` is ``b`` or lies inside it, or ``b`` lies inside ``a`` (resolved)."""
+    ra, rb = Path(a).resolve(), Path(b).resolve()
+    return ra == rb or rb in ra.parents or ra in rb.parents
+
+
+def check_new_output(path: str | os.PathLike, option: str, force: bool = False,
+                     inputs: Iterable[str | os.PathLike] = ()) -> Path:
+    """``path`` checked as a new output named by ``option`` (e.g. ``--results-bag``): never an
+    input (or inside one, or holding one), and not an existing path unless ``force``."""
+    path = Path(path)
+    for src in inputs:
+        if same_or_inside(path, src):
+            raise OutputError(f"{option} {path}: is (or holds, or lies inside) the input {src}; "
+                              "choose another path")
+    if os.path.lexists(path) and not force:
+        raise OutputError(f"{option} {path}: exists already; pass --force to replace it")
+    return path
