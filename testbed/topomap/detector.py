@@ -58,8 +58,8 @@ def train(data_dir: Path = DEFAULT_DATA, out: Path = DEFAULT_WEIGHTS, colour_out
     info = {"train_shards": train_shards, "test_shards": test_shards, "images": len(images),
             "components": [{"class": c.cls, "shape": list(c.shape)} for c in det.components],
             "seconds": time.perf_counter() - t0, "colour_thresholds": det.colour.thresholds}
-    Path(out).with_suffix(".json").write_text(json.dumps(info, indent=1))
     from testbed.io import write_json
+
     write_json(Path(out).with_suffix(".json"), info, indent=1)
     log.info("saved %s and %s (%.0f s)", out, colour_out, info["seconds"])
     return info
@@ -268,7 +268,5 @@ def main(argv=None) -> int:
     else:
         print_table(run_eval(args.out, args.data, args.max_images, not args.no_streams))
     return 0
-
-
 if __name__ == "__main__":
     raise SystemExit(main())
