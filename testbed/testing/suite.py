@@ -135,10 +135,12 @@ def load_suite(path: Path) -> Plan:
 
 
 def is_suite_file(path: Path) -> bool:
+    """A suite lists ``[[scenarios]]``; a scenario has a ``[room]`` (or ``extends`` another)."""
     try:
-        return "scenarios" in tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError):
         return False
+    return "scenarios" in data or not ("room" in data or "extends" in data)
 
 
 def load_plan(targets: list[str], seeds: str | None = None, settings: list[str] | None = None) -> Plan:
