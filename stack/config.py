@@ -35,6 +35,7 @@ import itertools
 import json
 import math
 import os
+import re
 import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -172,8 +173,10 @@ def _describe(exc: ValidationError, model: type[BaseModel], source: str) -> Conf
     loc = [str(p) for p in e["loc"]]
     key = ".".join(loc)
     if e["type"] == "extra_forbidden":
-        where = f"section '{loc[0]}'" if len(loc) > 1 else "the top level"
-        return ConfigError(f"{source}: unknown key '{key}'; {where} has {_section_keys(model, loc[:-1])}")
+        if len(loc) == 1:
+            return ConfigError(f"{source}: unknown section '{key}'; sections {_section_keys(model, [])}")
+        return ConfigError(f"{source}: unknown key '{key}'; section '{'.'.join(loc[:-1])}' has "
+                           f"{_section_keys(model, loc[:-1])}")
     if e["type"] in ("model_type", "dict_type") and len(loc) == 1:
         return ConfigError(f"{source}: key '{key}': expected a section of keys, got {e['input']!r}")
     more = f" (and {len(exc.errors()) - 1} more)" if len(exc.errors()) > 1 else ""
@@ -208,7 +211,10 @@ def read_file(path: str | Path) -> dict:
         raise ConfigError(f"{path}: cannot read ({exc})") from None
     try:
         if suffix == ".toml":
-            import tomllib
+            try:
+                import tomllib
+            except ModuleNotFoundError:  # Python < 3.11
+                import tomli as tomllib
 
             data = tomllib.loads(text)
         elif suffix == ".json":
@@ -407,6 +413,49 @@ def write_config(config: BaseModel, path: str | Path) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+# ---------------------------------------------------------------------------------------------
+# the reference (docs/configuration.md is generated from it)
+
+
+def _default_text(field) -> str:
+    if field.default_factory is not None:
+        return ""
+    v = field.default
+    if v is None:
+        return "null"
+    return _toml_value(list(v) if isinstance(v, tuple) else v)
+
+
+def _reference(model: type[BaseModel], name: str, lines: list[str]) -> None:
+    doc = re.sub(r":\w+:`~?([^`]+)`", r"`\1`", (model.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")).replace("``", "`")
+    lines += [f"### `[{name}]`", "", doc, "", "| key | default | meaning |", "|---|---|---|"]
+    nested = []
+    for key, field in model.model_fields.items():
+        ann = field.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            nested.append((key, ann))
+            lines.append(f"| `{key}` | | the section `[{name}.{key}]` below |")
+            continue
+        meaning = (field.description or "").replace("|", "\\|")
+        bounds = [f"{op} {getattr(m, attr)}" for m in field.metadata
+                  for attr, op in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")) if hasattr(m, attr)]
+        if getattr(ann, "__origin__", None) is Literal:
+            bounds.append(" or ".join(f'"{a}"' for a in ann.__args__))
+        allowed = f" ({', '.join(bounds)})" if bounds else ""
+        lines.append(f"| `{key}` | `{_default_text(field)}` | {meaning}{allowed} |")
+    lines.append("")
+    for key, ann in nested:
+        _reference(ann, f"{name}.{key}", lines)
+
+
+def reference_markdown(model: type[BaseModel] = StackConfig) -> str:
+    """Every section and key of ``model`` with its default and meaning, as Markdown tables."""
+    lines: list[str] = []
+    for name, field in model.model_fields.items():
+        _reference(field.annotation, name, lines)
+    return "\n".join(lines)
 
 
 # ---------------------------------------------------------------------------------------------

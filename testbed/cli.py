@@ -14,6 +14,7 @@ COMMAND_MODULES = [
     "testbed.commands.odometry",
     "testbed.commands.dope",
     "testbed.commands.run",
+    "testbed.commands.config",
     "testbed.commands.experiments",
     "testbed.commands.bags",
     "testbed.commands.policy",

@@ -24,9 +24,9 @@ log = logging.getLogger(__name__)
 
 
 def cache_dir() -> Path:
-    d = Path(os.environ.get("DOPESLAM_CACHE", Path.home() / ".cache" / "dopeslam")) / "vocabulary"
-    d.mkdir(parents=True, exist_ok=True)
-    return d
+    from testbed.settings import cache_dir as cache
+
+    return cache("vocabulary")
 
 
 def training_scenarios() -> list[str]:

@@ -5,7 +5,7 @@ drives the scenario's route, KISS-ICP gives its pose, DOPE gives detections. So 
 (simulation, odometry, DOPE) runs once per (scenario, seed, light, duration, input, stages,
 weights) and the env replays it at thousands of steps per second.
 
-Files, under ``cache_dir()`` (``$DOPESLAM_CACHE`` or ``~/.cache/dopeslam/perception``), named by
+Files, under ``cache_dir()`` (``$DOPESLAM_CACHE/perception``, default ``~/.cache/dopeslam/perception``), named by
 a hash of those fields (:class:`PerceptionSpec`):
 
 - ``<stem>.json``        the spec it was built for, the objects' ground truth, camera, timings
@@ -51,7 +51,6 @@ log = logging.getLogger(__name__)
 
 CACHE_VERSION = 2  # 2: per-detection camera position, T_base_cam, the odometry's floor plane
 FPR_RULE_VERSION = 2  # 1: belief sum + depth check; 2: + colour check, recalibrated fall-back
-ENV_CACHE_DIR = "DOPESLAM_CACHE"
 DEFAULT_THUMB = (160, 120)
 
 DetectorFactory = Callable[[object], object]
@@ -64,9 +63,11 @@ class PerceptionCacheError(RuntimeError):
 
 
 def cache_dir(path: str | os.PathLike | None = None) -> Path:
-    """The cache folder: ``path``, else ``$DOPESLAM_CACHE``, else ``~/.cache/dopeslam/perception``."""
+    """The cache folder: ``path``, else ``perception/`` in the cache root (``testbed.settings.cache_dir``)."""
     if path is None:
-        path = os.environ.get(ENV_CACHE_DIR) or Path.home() / ".cache" / "dopeslam" / "perception"
+        from testbed.settings import cache_dir as cache
+
+        return cache("perception", create=False)
     return Path(path).expanduser()
 
 

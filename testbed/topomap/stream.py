@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,9 +29,9 @@ DEFAULT_SIZE = (640, 480)
 
 
 def cache_root() -> Path:
-    d = Path(os.environ.get("DOPESLAM_CACHE", Path.home() / ".cache" / "dopeslam")) / "topomap_streams"
-    d.mkdir(parents=True, exist_ok=True)
-    return d
+    from testbed.settings import cache_dir
+
+    return cache_dir("topomap_streams")
 
 
 @dataclass
