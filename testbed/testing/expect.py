@@ -12,9 +12,10 @@ import operator
 import re
 from dataclasses import asdict, dataclass
 
+from sim.scenario import EXPECT_COMPARISON as _COMPARISON  # one syntax, checked where scenarios load
+
 OPS = {">=": operator.ge, "<=": operator.le, ">": operator.gt, "<": operator.lt, "==": operator.eq,
        "!=": operator.ne}
-from sim.scenario import EXPECT_COMPARISON as _COMPARISON  # one syntax, checked where scenarios load
 PASS_RATE_KEY = "min_pass_rate"
 
 # The numbers in the report of `dopeslam run` (testbed/run.py), by section.
@@ -167,7 +168,7 @@ def evaluate(exp: Expectation, report: dict) -> Outcome:
     elif exp.op in ("<=", "<"):
         margin = exp.bound - measured
     elif exp.op == "==":
-        margin = -abs(measured - exp.bound)
+        margin = -abs(measured - exp.bound) or 0.0
     else:
         margin = abs(measured - exp.bound)
     return Outcome(exp.path, exp.op, exp.bound, measured, ok, margin)
