@@ -127,7 +127,7 @@ def detector_name(detector) -> str:
 def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_mode="rgb", stages=6, fpr=True,
                 policy="robust-mean", duration=None, weights=None, detector=None, dope_every: int = 1,
                 write_outputs: bool = True, keep_detections: bool = False, bag_writer=None,
-                results_bag=None, loop_closure: bool = False, config=None) -> dict:
+                results_bag=None, loop_closure: bool = False, config=None, faults=(), store=None, retire=True) -> dict:
     """One simulated episode through the stack's pipeline (:class:`stack.pipeline.DopeSlam`), scored.
 
     ``detector``: any :class:`stack.interfaces.Detector` (default: DOPE + FPR for ``input_mode``,
@@ -141,7 +141,10 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     is fused again with it. ``config``: a ``stack.config.StackConfig`` (or ``testbed.settings.RunConfig``)
     whose settings replace ``input_mode``, ``stages``, ``fpr``, ``weights``, ``dope_every`` and
     ``loop_closure`` and set the odometry, evidence, store and loop closure; it is written to
-    OUT/config.toml and the report gets its ``provenance``."""
+    OUT/config.toml and the report gets its ``provenance``. ``faults``: ``NAME=VALUE`` sensor faults
+    over the scenario's ``[faults]`` (``sim.faults``); ``store``: an object store file (.xlsx/.json)
+    to start from and save the updated map to; ``retire``: retire labels whose place is seen empty
+    (True: ``stack.retire.RetireConfig()``, a config, or False); see ``testbed/dynamic.py``."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
@@ -175,13 +178,17 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         if config is not None:  # the store as configured (before the first message)
             pipe.store = ObjectStore(dims=dims, gate_m=config.store.gate_m, policy=policy,
                                      evidence=config.evidence_or_none())
+        from stack.retire import RetireConfig
+        from testbed.dynamic import DynamicRun
+
+        dyn = DynamicRun(ep, pipe, faults, store, RetireConfig() if retire is True else (retire or None))
         dlog = DetectionLog()
         all_dets: list[tuple[Detection, bool]] = []
         simulation_s = 0.0
         t_last = time.perf_counter()
         last_log = t_last
 
-        for msg in ep.frames():
+        for msg in dyn.messages():
             simulation_s += time.perf_counter() - t_last
             truths = None
             if isinstance(msg, CameraFrame):
@@ -190,6 +197,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
                     dlog.frames += 1
                     truths = ep.image_truth(msg)
                     flags = score_detections(dlog, dets, truths)
+                    dyn.on_image(msg, dets, flags, truths)
                     if keep_detections:
                         all_dets.extend(zip(dets, flags))
             else:
@@ -233,6 +241,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             "map_floor": None if store.floor is None else {"normal": [float(v) for v in store.floor[0]],
                                                            "d_m": store.floor[1]},
         }
+        dyn.report(report, store, T_world_map)
         if config is not None:
             from testbed.provenance import detector_files, provenance
 
@@ -244,6 +253,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
                 write_config(config, out / "config.toml")
             write_json(out / "report.json", report)
+            dyn.save_store(store)
             store.save(out / "labels.xlsx", overwrite=True)
             store.save(out / "labels.json", overwrite=True)
             write_tum(out / "estimate_tum.txt", stamps, T_world_map @ poses)
