@@ -24,6 +24,47 @@ def add_dope_options(p: argparse.ArgumentParser, defaults: bool = True,
 CONFIG_DEFAULT = " (default: the config's, see --config and --set)"
 
 
+def add_dynamic_options(p: argparse.ArgumentParser) -> None:
+    """``--fault``, ``--store`` and ``--retire`` (docs/faults.md, docs/dynamic.md)."""
+    p.add_argument("--fault", dest="faults", action="append", default=[], metavar="NAME=VALUE",
+                   help="a sensor fault over the scenario's [faults], e.g. lidar_drop=0.2, camera_drop=0.2, "
+                        "camera_latency=0.05 (seconds), wheel_slip=0.1; every name in docs/faults.md")
+    p.add_argument("--store", default=None, metavar="PATH",
+                   help="an object store (labels.xlsx or labels.json) from an earlier run: start from it and "
+                        "save the updated map there (rows you marked edited stay as you left them)")
+    p.add_argument("--retire", action=argparse.BooleanOptionalAction, default=True,
+                   help="retire labels whose place the depth images show empty (stack.retire)")
+
+
+def check_dynamic_options(args, command: str) -> int | None:
+    """Exit status 2 with a one-line error for a bad --fault or --store, else None."""
+    import sys
+    from pathlib import Path
+
+    from sim.faults import FaultError, parse_overrides
+
+    try:
+        parse_overrides(getattr(args, "faults", []) or [])
+    except FaultError as e:
+        print(f"dopeslam {command}: --{e}", file=sys.stderr)
+        return 2
+    store = getattr(args, "store", None)
+    if store is not None:
+        p = Path(store)
+        if p.suffix.lower() not in (".xlsx", ".json"):
+            print(f"dopeslam {command}: --store {store}: expected a .xlsx or .json file", file=sys.stderr)
+            return 2
+        if p.exists():
+            from stack.object_store import ObjectStoreError, read_objects
+
+            try:
+                read_objects(p)
+            except ObjectStoreError as e:
+                print(f"dopeslam {command}: --store {e}", file=sys.stderr)
+                return 2
+    return None
+
+
 def register(sub) -> None:
     p = sub.add_parser("run", help="the main job: a scored drive-through episode (report, labels.xlsx, map.png)")
     p.add_argument("scenario", nargs="?", default=None, help="bundled name or TOML path (default: the default scenario)")
@@ -43,6 +84,7 @@ def register(sub) -> None:
                    help="close loops (vocabulary tree + LiDAR verification + pose graph); labels move with them")
     add_dope_options(p, defaults=False, unset=CONFIG_DEFAULT)
     add_config_options(p)
+    add_dynamic_options(p)
     p.set_defaults(func=run)
 
     p = sub.add_parser("score", help="publish saved runs' maps again (evidence settings) and score the whole map")
@@ -73,10 +115,14 @@ def run(args) -> int:
     except ImportPathError as e:
         print(f"dopeslam run: --{e}", file=sys.stderr)  # "--detector 'x:Y': what is wrong"
         return 2
+    bad = check_dynamic_options(args, "run")
+    if bad is not None:
+        return bad
     r = config.run
     try:
         report = run_episode(r.scenario, args.out, r.seed, r.light, policy=policy, duration=r.duration,
-                             detector=detector, config=config)
+                             detector=detector, config=config, faults=args.faults,
+                             store=args.store, retire=args.retire)
     except ConfigError as e:
         return config_error("run", e)
     print_summary(report)
