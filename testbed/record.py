@@ -211,8 +211,13 @@ class EpisodeRecorder:
 
 def record_episode(scenario=None, bag: Path | str = "out/episode", format: str | None = None,
                    storage: str = "mcap", seed: int | None = None, duration: float | None = None,
-                   light: float | None = None, overwrite: bool = False, compress: bool = True) -> dict:
-    """Run an episode (no stack) and write it to ``bag``; returns a summary with the timing."""
+                   light: float | None = None, overwrite: bool = False, compress: bool = True,
+                   faults=()) -> dict:
+    """Run an episode (no stack) and write it to ``bag``; returns a summary with the timing.
+    ``faults``: ``NAME=VALUE`` sensor faults over the scenario's ``[faults]`` (``sim.faults``): the
+    bag holds the messages as the faulty drivers publish them."""
+    from sim.faults import FaultInjector, parse_overrides
+
     from sim.episode import Episode
 
     bag = Path(bag)
@@ -222,7 +227,9 @@ def record_episode(scenario=None, bag: Path | str = "out/episode", format: str |
         with writer:
             rec = EpisodeRecorder(writer, ep)
             last_log = time.perf_counter()
-            for msg in ep.frames():
+            fault_set = parse_overrides(faults or (), ep.sc.faults)
+            injector = FaultInjector(fault_set, ep.seed) if fault_set.active else None
+            for msg in (ep.frames() if injector is None else injector.apply(ep.frames())):
                 rec.write(msg)
                 if time.perf_counter() - last_log > 15:
                     last_log = time.perf_counter()
@@ -234,7 +241,8 @@ def record_episode(scenario=None, bag: Path | str = "out/episode", format: str |
                 "sim_seconds": ep.sim_seconds, "wall_seconds": wall, "recording_seconds": rec.seconds,
                 "recording_cpu_seconds": rec.cpu_seconds,
                 "recording_share": rec.seconds / wall if wall > 0 else None,
-                "bytes": bag_size(bag), "messages": dict(sorted(writer.counts.items()))}
+                "bytes": bag_size(bag), "messages": dict(sorted(writer.counts.items())),
+                "faults": None if injector is None else {"settings": fault_set.active, "counts": injector.counts}}
 
 
 # --- the stack's results -------------------------------------------------------------------------
