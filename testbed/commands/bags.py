@@ -17,6 +17,9 @@ def register(sub) -> None:
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
     p.add_argument("--light", type=float, default=None, help="override the scenario's light level (0-1)")
     p.add_argument("--force", action="store_true", help="replace an existing bag")
+    p.add_argument("--fault", dest="faults", action="append", default=[], metavar="NAME=VALUE",
+                   help="a sensor fault over the scenario's [faults] (docs/faults.md): the bag carries the "
+                        "messages as the faulty drivers publish them")
     p.set_defaults(func=record)
 
     p = sub.add_parser("replay", help="run the stack offline on a rosbag (ours or a real robot's): "
@@ -49,8 +52,13 @@ def record(args) -> int:
         raise SystemExit(f"--bag {args.bag}: a ROS 1 bag's name must end in .bag")
     if args.format == "ros2" and args.bag.endswith(".bag"):
         raise SystemExit(f"--bag {args.bag}: a ROS 2 bag is a directory; its name must not end in .bag")
+    from testbed.commands.run import check_dynamic_options
+
+    bad = check_dynamic_options(args, "record")
+    if bad is not None:
+        return bad
     summary = record_episode(args.scenario, args.bag, args.format, args.storage, args.seed, args.duration,
-                             args.light, overwrite=args.force)
+                             args.light, overwrite=args.force, faults=args.faults)
     print(json.dumps(summary, indent=2))
     return 0
 
