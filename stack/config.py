@@ -43,6 +43,7 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from stack.errors import DopeSlamError
 from stack.evidence import EvidenceConfig
 from stack.lidar_slam import LidarOdometryConfig
 from stack.loops.closure import LoopClosureConfig
@@ -53,7 +54,7 @@ ENV_TORCH_THREADS = "DOPESLAM_TORCH_THREADS"
 FILE_SUFFIXES = (".toml", ".yaml", ".yml", ".json")
 
 
-class ConfigError(ValueError):
+class ConfigError(DopeSlamError, ValueError):
     """A setting that cannot be used; the message (one line) names its source, the key and what was expected."""
 
 
@@ -124,8 +125,9 @@ class ComponentsConfig(BaseModel):
 
     detector: str | None = Field(None, description="MODULE:CLASS of a detector (constructed with no arguments, "
                                  "detect(frame) -> list[Detection]); replaces [detector]'s DOPE")
-    odometry: str | None = Field(None, description="MODULE:CLASS of an odometry (stack.interfaces.Odometry); "
-                                 "replaces [odometry]'s KISS-ICP")
+    odometry: str | None = Field(None, description="the odometry: kiss-icp (null: the same, with [odometry]'s "
+                                 "settings), wheel, an installed entry point (group dopeslam.odometry), or "
+                                 "MODULE:CLASS called with the LiDAR's mounting T_base_lidar (stack.interfaces.Odometry)")
 
 
 class StackConfig(BaseModel):

@@ -276,9 +276,6 @@ def _check_config(config) -> None:
     """Settings this job cannot apply are errors, not silently ignored."""
     from stack.config import ConfigError, StoreConfig
 
-    if config.components.odometry:
-        raise ConfigError(f"key 'components.odometry': {config.components.odometry!r}: this job runs the "
-                          "bundled LiDAR odometry only; set it to null")
     if config.loop_closure.enabled and config.store.gate_m != StoreConfig().gate_m:
         raise ConfigError("key 'store.gate_m': with loop_closure.enabled the map is placed again with the "
                           f"default gate ({StoreConfig().gate_m} m); leave it at the default")
