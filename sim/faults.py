@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from stack.errors import DopeSlamError
 from stack.messages import CameraFrame, LidarScan, WheelOdometry
 from stack.transforms import inv
 
@@ -62,7 +63,7 @@ class Faults(BaseModel):
         return {k: v for k, v in self.model_dump().items() if v != getattr(clean, k)}
 
 
-class FaultError(ValueError):
+class FaultError(DopeSlamError, ValueError):
     """A ``--fault NAME=VALUE`` that cannot be used (names the fault and what was expected)."""
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from stack.errors import DopeSlamError
 from stack.io import write_bytes
 
 DATA_DIR = Path(__file__).parent / "data"
@@ -30,7 +31,7 @@ _AXES = {"+x": np.array([1.0, 0, 0]), "-x": np.array([-1.0, 0, 0]),
          "+z": np.array([0, 0, 1.0]), "-z": np.array([0, 0, -1.0])}
 
 
-class CatalogError(ValueError):
+class CatalogError(DopeSlamError, ValueError):
     pass
 
 

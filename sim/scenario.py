@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from sim.events import Event, check_events
 from sim.faults import Faults
+from stack.errors import DopeSlamError
 
 SCENES_DIR = Path(__file__).parent / "scenes"
 DEFAULT_SCENARIO = "experiment3_columns"
@@ -29,7 +30,7 @@ Color = Annotated[list[Annotated[int, Field(ge=0, le=255)]], Field(min_length=3,
 EXPECT_COMPARISON = re.compile(r"^\s*(>=|<=|==|!=|>|<)\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|true|false)\s*$")
 
 
-class ScenarioError(ValueError):
+class ScenarioError(DopeSlamError, ValueError):
     """A scenario file that cannot be used; the message names file, field and expectation."""
 
 

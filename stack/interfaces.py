@@ -20,6 +20,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from stack.errors import DopeSlamError
 from stack.messages import CameraFrame, Detection, LidarScan
 from stack.object_store import POLICIES, Label, Observation, register
 
@@ -88,7 +89,7 @@ class LoopCloser(Protocol):
     def map_points(self) -> list[np.ndarray]: ...
 
 
-class ImportPathError(ValueError):
+class ImportPathError(DopeSlamError, ValueError):
     """An import path (``MODULE:ATTRIBUTE``) that does not name something loadable; the message says
     which part is wrong."""
 

@@ -43,6 +43,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from scipy.spatial.transform import Rotation
 
+from stack.errors import DopeSlamError
 from stack.messages import LidarScan, WheelOdometry
 from stack.transforms import interpolate_trajectory, inv
 
@@ -89,7 +90,7 @@ class LidarOdometryConfig(BaseModel):
         )
 
 
-class ConfigFileError(ValueError):
+class ConfigFileError(DopeSlamError, ValueError):
     """A configuration file that cannot be used; names the file, the field and what was expected."""
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from stack.errors import DopeSlamError
 from stack.io import write_text
 from stack.transforms import inv, make_T
 
@@ -142,7 +143,7 @@ def rpe(T_world_est: np.ndarray, T_world_gt: np.ndarray, delta_m: float = 1.0) -
 # TUM trajectory files: one pose a line, "timestamp tx ty tz qx qy qz qw", '#' comments allowed
 
 
-class TrajectoryFileError(ValueError):
+class TrajectoryFileError(DopeSlamError, ValueError):
     """A trajectory file that cannot be read; the message names the file, the line and what was expected."""
 
 

@@ -27,6 +27,7 @@ from openpyxl.utils.exceptions import InvalidFileException
 from scipy.spatial.transform import Rotation
 
 from stack.evidence import CANDIDATE, LABEL, EvidenceConfig, assess
+from stack.errors import DopeSlamError
 from stack.io import atomic_path, write_json
 from stack.messages import Detection
 from stack.retire import RETIRED, revive
@@ -40,7 +41,7 @@ JSON_FORMAT = "dopeslam-object-store"
 QUAT_NORM_TOLERANCE = 0.01  # hand-typed quaternions (0.707, 0, 0, 0.707) are accepted and normalised
 
 
-class ObjectStoreError(ValueError):
+class ObjectStoreError(DopeSlamError, ValueError):
     """A store file that cannot be read: says which file, row and column, and what was expected.
 
     ``row`` is the spreadsheet row number (header = 1) for .xlsx, the index in ``objects``

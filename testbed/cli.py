@@ -4,9 +4,15 @@ is the single registry."""
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import sys
+
+from stack.errors import DopeSlamError
+
+# the machine, not the program: a full disk, a read-only or forbidden folder
+_ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}
 
 COMMAND_MODULES = [
     "testbed.commands.scenes",
@@ -58,6 +64,15 @@ def main(argv: list[str] | None = None) -> int:
         return rc
     except KeyboardInterrupt:
         return 130
+    except DopeSlamError as exc:  # what the user gave is wrong: one line (file, field, expected), no traceback
+        print(f"dopeslam {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        if exc.errno not in _ENVIRONMENT_ERRNOS:
+            raise
+        print(f"dopeslam {args.command}: {exc.strerror}: {exc.filename or ''}; no output was left half-written",
+              file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ from stack.errors import OutputError
 from stack.io import (atomic_path, clean_stale, output_dir, staging_entries, strict, strict_json, write_bytes,
                       write_json, write_text)
 
-__all__ = ["atomic_path", "check_new_output", "clean_stale", "output_dir", "same_or_inside", "staging_entries",
+__all__ = ["atomic_path", "check_new_output", "clean_stale", "edited_objects", "output_dir", "same_or_inside", "staging_entries",
            "strict", "strict_json", "write_bytes", "write_json", "write_text"]
 
 
@@ -36,3 +36,20 @@ def check_new_output(path: str | os.PathLike, option: str, force: bool = False,
     if os.path.lexists(path) and not force:
         raise OutputError(f"{option} {path}: exists already; pass --force to replace it")
     return path
+
+
+def edited_objects(out_dir: str | os.PathLike) -> list:
+    """The rows marked ``edited`` in an output folder's ``labels.json`` and ``labels.xlsx`` (the
+    spreadsheet's win where both have one object), to keep through a rerun into that folder. A
+    store file there that does not parse raises ``ObjectStoreError`` (one line: file, row, column),
+    before any work starts, and the folder is left as it is."""
+    from stack.object_store import read_objects
+
+    kept: dict[int, object] = {}
+    for name in ("labels.json", "labels.xlsx"):
+        path = Path(out_dir) / name
+        if path.is_file():
+            for obj in read_objects(path):
+                if obj.edited:
+                    kept[obj.id] = obj
+    return list(kept.values())

@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from stack.errors import OutputError
 from stack.fusion import fuse
 from stack.lidar_slam import LidarOdometry, LidarOdometryConfig, WheelOdometryTrack
 from stack.messages import CameraFrame, Detection
@@ -40,7 +41,7 @@ from testbed.bags import topics as T
 from testbed.record import RESULTS_BAG_NAME, image_truth_from_json, write_results_bag
 from testbed.run import DetectionLog, _map_png, candidate_rows, score_detections, score_labels, score_trajectory
 from testbed.scoring import summary_line
-from testbed.simulate import write_json
+from testbed.io import check_new_output, edited_objects, output_dir, write_json
 
 log = logging.getLogger(__name__)
 
@@ -228,6 +229,11 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
 
     topics = topics or BagTopics()
     out = Path(out_dir)
+    if results_bag is not None:  # never over the input, whatever --force says
+        check_new_output(results_bag, "--results-bag", force=True, inputs=[bag_path])
+    if write_outputs and (out.resolve() == Path(bag_path).resolve() or Path(bag_path).resolve() in out.resolve().parents):
+        raise OutputError(f"--out {out}: is, or lies inside, the input bag {bag_path}; choose another folder")
+    kept = edited_objects(out) if write_outputs else []  # checked before any work starts
     wall0 = time.perf_counter()
     bag = open_bag(bag_path, topics, input_mode)
     try:
@@ -351,24 +357,25 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             report["labels_summary"] = {"map_objects": len(store), "labels_in_map": len(store.labels()),
                                         "candidates": len(store.candidates())}
 
-        if write_outputs:
-            out.mkdir(parents=True, exist_ok=True)
-            write_json(out / "report.json", report)
-            store.save(out / "labels.xlsx", overwrite=True)
-            store.save(out / "labels.json", overwrite=True)
-            if gt is not None:
-                write_tum(out / "estimate_tum.txt", stamps, T_world_map @ poses)
-                write_tum(out / "groundtruth_tum.txt", stamps, gt.T_world_base_at(stamps))
-                if gt.objects:
-                    shim = SimpleNamespace(groundtruth=SimpleNamespace(T_world_base=gt.T_world_base))
-                    _map_png(out / "map.png", shim, T_world_map, poses, odo.map_points, report["labels"], report)
+        if write_outputs:  # into a hidden sibling, renamed into place whole; report.json last
+            with output_dir(out) as stage:
+                store.keep_edited(kept)  # rows a person marked edited in the folder's store files
+                store.save(stage / "labels.xlsx")
+                store.save(stage / "labels.json")
+                if gt is not None:
+                    write_tum(stage / "estimate_tum.txt", stamps, T_world_map @ poses)
+                    write_tum(stage / "groundtruth_tum.txt", stamps, gt.T_world_base_at(stamps))
+                    if gt.objects:
+                        shim = SimpleNamespace(groundtruth=SimpleNamespace(T_world_base=gt.T_world_base))
+                        _map_png(stage / "map.png", shim, T_world_map, poses, odo.map_points, report["labels"], report)
+                    else:
+                        _map_png_untruthed(stage / "map.png", poses, odo.map_points, store, report, T_world_map)
                 else:
-                    _map_png_untruthed(out / "map.png", poses, odo.map_points, store, report, T_world_map)
-            else:
-                write_tum(out / "estimate_tum.txt", stamps, poses)
-                _map_png_untruthed(out / "map.png", poses, odo.map_points, store, report)
-            write_results_bag(results_bag or out / RESULTS_BAG_NAME, store, odo.map_points, stamps, poses,
-                              T_world_map=T_world_map, objects=gt.objects if gt is not None and gt.objects else None)
+                    write_tum(stage / "estimate_tum.txt", stamps, poses)
+                    _map_png_untruthed(stage / "map.png", poses, odo.map_points, store, report)
+                write_results_bag(results_bag or stage / RESULTS_BAG_NAME, store, odo.map_points, stamps, poses,
+                                  T_world_map=T_world_map, objects=gt.objects if gt is not None and gt.objects else None)
+                write_json(stage / "report.json", report)
         if keep_detections:
             report["_detections"] = list(zip(det.detections, det.flags)) if truth is not None else det.detections
             report["_store"] = store

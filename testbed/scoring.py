@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from stack.errors import DopeSlamError
 from stack.transforms import transform_points
 
 FALSE_LABEL_M = 0.25  # a label further than this from its object's truth is a false label
@@ -108,7 +109,7 @@ def _nearest(p: np.ndarray, truth: np.ndarray) -> float | None:
     return float(np.min(np.linalg.norm(truth - p, axis=1))) if len(truth) else None
 
 
-class RunDirError(ValueError):
+class RunDirError(DopeSlamError, ValueError):
     """A run folder that cannot be scored again (names the file and what is wrong)."""
 
 

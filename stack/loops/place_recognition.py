@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from stack.errors import DopeSlamError
 log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
@@ -157,7 +158,7 @@ def _kmeans(x: np.ndarray, k: int, rng: np.random.Generator, iterations: int) ->
     return centres, labels
 
 
-class VocabularyError(ValueError):
+class VocabularyError(DopeSlamError, ValueError):
     """A vocabulary file that cannot be used; names the file and what is wrong."""
 
 

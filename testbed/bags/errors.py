@@ -9,8 +9,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
+from stack.errors import DopeSlamError
 
-class BagError(Exception):
+class BagError(DopeSlamError):
     """Base class of every error about a rosbag file."""
 
     def __init__(self, path: Path | str, message: str):

@@ -22,6 +22,7 @@ from lz4.frame import decompress as lz4_decompress
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 from rosbags.typesys.msg import normalize_msgtype
 
+from stack.errors import DopeSlamError
 try:  # Python 3.14 ships zstd; before that rosbags depends on the backport
     from compression import zstd  # type: ignore[import-not-found]
 except ImportError:  # pragma: no cover - depends on the interpreter
@@ -32,7 +33,7 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 _IDL_SEP = "=" * 80 + "\n"
 
 
-class SalvageError(Exception):
+class SalvageError(DopeSlamError):
     """The file is not a bag this module can walk (wrong magic, unsupported compression)."""
 
 

@@ -34,7 +34,9 @@ def register(sub) -> None:
     p.add_argument("--dope-every", type=int, default=1, help="run DOPE on every N-th image")
     p.add_argument("--sequential", action="store_true",
                    help="run the odometry and DOPE passes one after the other (default: at the same time)")
-    p.add_argument("--results-bag", default=None, help="where the results bag goes (default OUT/results_bag)")
+    p.add_argument("--results-bag", default=None, help="where the results bag goes (default OUT/results_bag); "
+                   "an existing path is refused unless --force, the input bag always")
+    p.add_argument("--force", action="store_true", help="replace an existing --results-bag")
     p.add_argument("--loop-closure", action="store_true",
                    help="close loops (key frames from the colour images + LiDAR) and place labels on the corrected trajectory")
     p.add_argument("--vocabulary", default=None, help="place-recognition vocabulary .npz (default: the bundled one)")
@@ -65,21 +67,21 @@ def record(args) -> int:
 
 def replay(args) -> int:
     from stack.object_store import POLICIES
-    from testbed.bags import BagError
     from testbed.replay import BagTopics, print_replay_summary, replay_bag
 
     if args.policy not in POLICIES:
         raise SystemExit(f"--policy: expected one of {sorted(POLICIES)}, got {args.policy!r}")
     if args.dope_every < 1:
         raise SystemExit(f"--dope-every: expected an integer >= 1, got {args.dope_every}")
+    if args.results_bag is not None:
+        from testbed.io import check_new_output
+
+        check_new_output(args.results_bag, "--results-bag", force=args.force, inputs=[args.bag])
     topics = BagTopics(args.lidar_topic, args.rgb_topic, args.depth_topic, args.camera_info_topic)
-    try:
-        report = replay_bag(args.bag, args.out, input_mode=args.input_mode, stages=args.stages, fpr=args.fpr,
-                            weights=args.weights, policy=args.policy, topics=topics, dope_every=args.dope_every,
-                            parallel=not args.sequential, results_bag=args.results_bag,
-                            loop_closure=args.loop_closure, vocabulary=args.vocabulary)
-    except BagError as exc:
-        raise SystemExit(f"error: {exc}") from None
+    report = replay_bag(args.bag, args.out, input_mode=args.input_mode, stages=args.stages, fpr=args.fpr,
+                        weights=args.weights, policy=args.policy, topics=topics, dope_every=args.dope_every,
+                        parallel=not args.sequential, results_bag=args.results_bag,
+                        loop_closure=args.loop_closure, vocabulary=args.vocabulary)
     args.json_result = report  # --json (testbed/cli.py)
     print_replay_summary(report)
     print(f"wrote {args.out}/report.json, labels.xlsx, labels.json, map.png, estimate_tum.txt"

@@ -11,6 +11,7 @@ import json
 import math
 from pathlib import Path
 
+from stack.errors import DopeSlamError
 from testbed.testing.expect import lookup
 
 RUN_METRICS = {  # path: (direction, tolerance)
@@ -25,7 +26,7 @@ NAVIGATE_METRICS = {"success": (+1, 0.0), "final_distance_m": (-1, 0.10)}
 _DIRECTION = {">=": +1, ">": +1, "<=": -1, "<": -1}
 
 
-class BaselineError(ValueError):
+class BaselineError(DopeSlamError, ValueError):
     """A baseline folder that cannot be read (one line)."""
 
 

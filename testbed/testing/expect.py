@@ -13,6 +13,7 @@ import re
 from dataclasses import asdict, dataclass
 
 from sim.scenario import EXPECT_COMPARISON as _COMPARISON  # one syntax, checked where scenarios load
+from stack.errors import DopeSlamError
 
 OPS = {">=": operator.ge, "<=": operator.le, ">": operator.gt, "<": operator.lt, "==": operator.eq,
        "!=": operator.ne}
@@ -38,7 +39,7 @@ NAVIGATE_KEYS = {"": {"success", "reached", "final_distance_m", "distance_to_obj
                       "target_node_shows_object", "path_length_m", "sim_seconds", "wall_seconds"}}
 
 
-class ExpectError(ValueError):
+class ExpectError(DopeSlamError, ValueError):
     """An expectation that cannot be used; the message names the key and what was expected."""
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from stack.errors import DopeSlamError
 # name -> (type, check, what is expected)
 RUN_OPTIONS = {
     "duration": (float, lambda v: 0 < v <= 3600, "seconds, > 0"),
@@ -24,7 +25,7 @@ NAVIGATE_OPTIONS = {
 JOBS = ("run", "navigate")
 
 
-class OptionError(ValueError):
+class OptionError(DopeSlamError, ValueError):
     """An option that cannot be used; the message names it and what was expected."""
 
 

@@ -10,6 +10,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from stack.errors import DopeSlamError
 from testbed.testing.cells import Cell, parse_seeds
 from testbed.testing.expect import ExpectError, Expectation, Outcome, evaluate_all, parse_expectations
 from testbed.testing.options import OptionError, RUN_OPTIONS, check_options, coerce
@@ -19,7 +20,7 @@ SUITE_KEYS = {"name", "description", "seeds", "options", "expect", "scenarios", 
 ENTRY_KEYS = {"scenario", "id", "seeds", "options", "expect"}
 
 
-class SuiteError(ValueError):
+class SuiteError(DopeSlamError, ValueError):
     """A suite, scenario or command-line value that cannot be used (one line: file, key, what was expected)."""
 
 
