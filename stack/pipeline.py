@@ -29,6 +29,7 @@ from stack.interfaces import Detector, LoopCloser, Odometry
 from stack.lidar_slam import WheelOdometryTrack
 from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
 from stack.object_store import ObjectStore, Observation
+from stack.retire import RetireConfig, Retirement
 from stack.transforms import transform_points
 
 MAP_EVERY = 5  # every 5th registered sweep goes into the LiDAR map (a picture, not used for labels) ...
@@ -64,12 +65,14 @@ class DopeSlam:
     (every class the detector reports must be there). ``policy``: a labelling policy's registered
     name (:data:`stack.object_store.POLICIES`). ``loop_closer``: optional, see
     :class:`stack.interfaces.LoopCloser`. ``detect_every``: run the detector on every n-th image
-    only. ``keep_observations``: keep every fused observation in the result.
+    only. ``keep_observations``: keep every fused observation in the result. ``retire``: retire map
+    objects whose place the depth images show empty (:mod:`stack.retire`); None: never.
     """
 
     def __init__(self, odometry: Odometry, detector: Detector, T_base_cam: np.ndarray,
                  dims: Mapping[str, Sequence[float]], policy: str = "robust-mean",
-                 loop_closer: LoopCloser | None = None, detect_every: int = 1, keep_observations: bool = False):
+                 loop_closer: LoopCloser | None = None, detect_every: int = 1, keep_observations: bool = False,
+                 retire: RetireConfig | None = None):
         if not isinstance(detector, Detector):
             raise TypeError(f"detector {type(detector).__name__} has no detect(frame) method")
         if detect_every < 1:
@@ -82,6 +85,8 @@ class DopeSlam:
         self.loop_closer = loop_closer
         self.detect_every = int(detect_every)
         self.keep_observations = keep_observations
+        self.retirement = Retirement(retire) if retire is not None else None
+        self._views: list[CameraFrame] = []  # detected images waiting for a pose (retirement check)
         self.store = ObjectStore(dims=self.dims, policy=policy)
         self.wheel = WheelOdometryTrack()
         self.timing = {"odometry": 0.0, "detection": 0.0, "fusion": 0.0}  # seconds spent in each
@@ -110,7 +115,7 @@ class DopeSlam:
                 self._map_points.append(transform_points(pose, points[::MAP_POINT_STRIDE]))
         if self.loop_closer is not None:
             self.loop_closer.on_scan(self.odometry, pose)
-        if self._pending:
+        if self._pending or self._views:
             stamps = self.odometry.trajectory()[0]
             if len(stamps):
                 self._fuse_pending(upto=float(stamps[-1]))
@@ -131,6 +136,8 @@ class DopeSlam:
         self.timing["detection"] += time.perf_counter() - t0
         self.detected_images += 1
         self._pending.extend(detections)
+        if self.retirement is not None:
+            self._views.append(frame)
         return detections
 
     def on_wheel_odometry(self, msg: WheelOdometry) -> None:
@@ -175,7 +182,7 @@ class DopeSlam:
 
     def _fuse_pending(self, upto: float | None) -> None:
         """Fuse the waiting detections with stamps up to ``upto`` (all when None); keep the later ones."""
-        keep = []
+        keep, seen = [], {}
         for det in self._pending:
             if upto is not None and det.stamp > upto:
                 keep.append(det)
@@ -184,9 +191,21 @@ class DopeSlam:
                 self.unposed += 1
                 continue
             obs = fuse(det, self.odometry.pose_at, self.T_base_cam)
-            self.store.add(obs)
+            obj = self.store.add(obs)
+            if obj is not None:
+                seen.setdefault(det.stamp, set()).add(obj.id)
             if self.loop_closer is not None:
                 self.loop_closer.on_fused(det)
             if self.keep_observations:
                 self._observations.append(obs)
         self._pending = keep
+        waiting = []
+        for frame in self._views:
+            if upto is not None and frame.stamp > upto:
+                waiting.append(frame)
+                continue
+            T_map_base = self.odometry.pose_at(frame.stamp)
+            if T_map_base is not None:
+                self.retirement.view(self.store, T_map_base @ self.T_base_cam, frame.info, frame.depth_m,
+                                     seen.get(frame.stamp, set()), frame.stamp)
+        self._views = waiting
