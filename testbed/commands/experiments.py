@@ -12,6 +12,7 @@ EXPERIMENTS = {
     "precision": "testbed.experiments.precision",        # paper experiment 2
     "localization": "testbed.experiments.localization",  # paper experiment 3
     "darkness": "testbed.experiments.darkness",          # light sweep, RGB vs depth
+    "faults": "testbed.experiments.faults",              # each sensor fault over its rate
 }
 
 
@@ -27,8 +28,23 @@ def register(sub) -> None:
     p.add_argument("--frames", type=int, default=None, help="depth-grid: frames per grid point")
     p.add_argument("--levels", type=_levels, default=None,
                    help="darkness: comma-separated light levels (default 1,0.5,0.25,0.1,0)")
+    p.add_argument("--faults", type=_fault_sweep, default=None, metavar="NAME=R,R,...;NAME=...",
+                   help="faults: the faults and rates to sweep (default: every fault, three rates; docs/faults.md)")
     add_dope_options(p, defaults=False)
     p.set_defaults(func=run)
+
+
+def _fault_sweep(text: str) -> dict:
+    from pydantic import ValidationError
+
+    from testbed.experiments.faults import parse_faults_option
+
+    try:
+        return parse_faults_option(text)
+    except ValidationError as e:
+        raise argparse.ArgumentTypeError(f"{e.errors()[0]['loc'][0]}: {e.errors()[0]['msg']}") from None
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _levels(text: str) -> tuple[float, ...]:
@@ -46,7 +62,7 @@ def run(args) -> int:
     out = args.out or f"out/{args.name}"
     opts = {"scenario": args.scenario, "seed": args.seed, "duration": args.duration, "runs": args.runs,
             "seconds": args.seconds, "frames": args.frames, "stages": args.stages, "input_mode": args.input_mode,
-            "weights": args.weights, "levels": args.levels}
+            "weights": args.weights, "levels": args.levels, "faults": args.faults}
     import inspect
 
     accepted = inspect.signature(module.run).parameters
