@@ -296,7 +296,7 @@ def print_summary(r: dict) -> None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The options of ``python -m testbed.loop_eval`` and ``dopeslam loop-eval``."""
+    """The options of ``dopeslam loop-eval``."""
     p.add_argument("scenario", nargs="?", default=DEFAULT_SCENARIO)
     p.add_argument("--out", default="out/loop_eval")
     p.add_argument("--seed", type=int, default=None)
@@ -312,16 +312,3 @@ def run_args(a) -> int:
     print_summary(r)
     print(f"wrote {a.out}/loop_eval.json, loop_eval.png")
     return 0
-
-
-def main(argv=None) -> int:
-    """``python -m testbed.loop_eval``: the same as ``dopeslam loop-eval``."""
-    import sys
-
-    from testbed.cli import main as cli_main
-
-    return cli_main(["loop-eval", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -37,12 +37,13 @@ def test_navigate_to_a_node_of_a_short_map(tmp_path, monkeypatch):
 
 def test_object_names_and_classes_resolve():
     from stack.messages import ObjectTruth
+    from testbed.topomap import InputError
     from testbed.topomap.navigate import resolve_object
 
     objs = [ObjectTruth("Mustard_3", "Mustard", np.eye(4), np.ones(3)), ObjectTruth("E", "E", np.eye(4), np.ones(3))]
     assert resolve_object("Mustard_3", objs)[0] == "Mustard"
     assert resolve_object("Mustard", objs)[1].name == "Mustard_3"
-    with pytest.raises(SystemExit, match="Mustard_3"):
+    with pytest.raises(InputError, match="Mustard_3"):
         resolve_object("Cookies", objs)
 
 
@@ -72,7 +73,7 @@ def _two_pass_map():
 
 def test_route_jumps_passes_through_a_revisit_edge():
     from stack.topomap.topological_map import ObjectAttribute
-    from testbed.topomap.navigate import route_length, route_poses, route_target, segment_scales, teach_route
+    from stack.topomap.navigation import route_length, route_poses, route_target, segment_scales, teach_route
 
     m, odom = _two_pass_map()
     scales = segment_scales(m, odom)
@@ -95,7 +96,7 @@ def test_route_jumps_passes_through_a_revisit_edge():
 
 
 def test_pose_tracker_gates_outlying_fixes():
-    from testbed.topomap.navigate import PoseTracker
+    from stack.topomap.navigation import PoseTracker
 
     tr = PoseTracker()
     T = np.eye(4)

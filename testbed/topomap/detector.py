@@ -12,12 +12,12 @@ colour step, detections whose colour-name histogram fails the class's colour mod
 before ranking. Test images: the held-out shards and, separately, frames of the bundled lit
 scenarios' camera streams (every 5th frame).
 
-    python -m testbed.topomap.detector train [--data runs/data/rgbd_v1] [--max-images N]
-    python -m testbed.topomap.detector eval --out out/topomap/detector
+    dopeslam hog-detector train [--data runs/data/rgbd_v1] [--max-images N]
+    dopeslam hog-detector eval --out out/topomap/detector
+    dopeslam hog-detector table out/topomap/detector/detector.json
 """
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import time
@@ -28,6 +28,7 @@ import numpy as np
 
 from stack.topomap.hog_detector import (DEFAULT_COLOUR, DEFAULT_WEIGHTS, HogDetector, TrainingImage, fit_colour_model, iou,
                                 load_shard_images, train_detector)
+from testbed.topomap import InputError
 
 log = logging.getLogger(__name__)
 CLASSES = ("OrangeJuice", "Yogurt", "Mustard", "Raisins", "Cookies", "E")
@@ -46,7 +47,7 @@ def train(data_dir: Path = DEFAULT_DATA, out: Path = DEFAULT_WEIGHTS, colour_out
           max_images: int | None = None, seed: int = 0, mining_rounds: int = 1, mining_images: int = 200) -> dict:
     train_shards, test_shards = shard_split(data_dir)
     if not train_shards:
-        raise SystemExit(f"{data_dir}: no data shards (shard_NNNNN.npz + .json); generate them with `dopeslam datagen`")
+        raise InputError(f"{data_dir}: no data shards (shard_NNNNN.npz + .json); generate them with `dopeslam datagen`")
     t0 = time.perf_counter()
     images = load_shard_images(data_dir, train_shards, CLASSES)
     if max_images:
@@ -238,35 +239,21 @@ def print_table(report: dict) -> None:
               f"the colour step raises precision at recall 0.25 for {len(up['0.25'])}/6, at recall 0.5 for {len(up['0.5'])}/6")
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m testbed.topomap.detector")
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    t = sub.add_parser("train")
-    t.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    t.add_argument("--max-images", type=int, default=None)
-    t.add_argument("--mining-rounds", type=int, default=1)
-    t.add_argument("--mining-images", type=int, default=200)
-    t.add_argument("--seed", type=int, default=0)
-    e = sub.add_parser("eval")
-    e.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    e.add_argument("--out", type=Path, default=Path("out/topomap/detector"))
-    e.add_argument("--max-images", type=int, default=None)
-    e.add_argument("--no-streams", action="store_true")
-    tb = sub.add_parser("table")
-    tb.add_argument("json", type=Path)
-    args = ap.parse_args(argv)
-    if args.cmd == "table":
-        report = json.loads(args.json.read_text())
+def run_args(args) -> int:
+    """``dopeslam hog-detector train|eval|table`` (options: ``testbed/commands/topomap.py``)."""
+    data = DEFAULT_DATA if getattr(args, "data", None) is None else args.data
+    if args.hog_command == "table":
+        try:
+            report = json.loads(args.json.read_text())
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{args.json}: expected an evaluation report (JSON) of dopeslam hog-detector eval: {exc}") from None
         for res in report["sets"].values():
             summarise(res)
         print_table(report)
         return 0
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    if args.cmd == "train":
-        print(json.dumps(train(args.data, max_images=args.max_images, seed=args.seed, mining_rounds=args.mining_rounds,
+    if args.hog_command == "train":
+        print(json.dumps(train(data, max_images=args.max_images, seed=args.seed, mining_rounds=args.mining_rounds,
                                mining_images=args.mining_images), indent=1))
     else:
-        print_table(run_eval(args.out, args.data, args.max_images, not args.no_streams))
+        print_table(run_eval(args.out, data, args.max_images, not args.no_streams))
     return 0
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -15,11 +15,10 @@ as in the topological-map paper's section 4.2.
 
 Features (corners + descriptors) are computed once per image and cached beside the stream.
 
-    python -m testbed.topomap.pose_eval [--scenarios experiment3_columns,shelf_corridor] [--runs 100] --out out/topomap/pose
+    dopeslam pose-eval [--scenarios experiment3_columns,shelf_corridor] [--runs 100] --out out/topomap/pose
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import logging
@@ -30,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from stack.topomap.mono_pose import METHODS, Features, MonoConfig, detect_features, run_sequence
+from testbed.topomap import InputError
 from testbed.topomap.stream import CameraStream, cache_root, camera_stream
 
 log = logging.getLogger(__name__)
@@ -237,22 +237,16 @@ def print_tables(report: dict) -> None:
         print("  (* the run lost track: its error is at the last tracked image)")
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m testbed.topomap.pose_eval")
-    ap.add_argument("--scenarios", default=",".join(DEFAULT_SCENARIOS))
-    ap.add_argument("--runs", type=int, default=100)
-    ap.add_argument("--out", type=Path, default=Path("out/topomap/pose"))
-    ap.add_argument("--table", type=Path, default=None, help="print the tables of an existing pose_eval.json")
-    args = ap.parse_args(argv)
+def run_args(args) -> int:
+    """``dopeslam pose-eval`` (options: ``testbed/commands/topomap.py``)."""
     if args.table is not None:
-        print_tables(json.loads(args.table.read_text()))
+        try:
+            report = json.loads(args.table.read_text())
+        except (OSError, ValueError) as exc:
+            raise InputError(f"--table {args.table}: expected a pose_eval.json: {exc}") from None
+        print_tables(report)
         return 0
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     report = run(args.scenarios.split(","), args.runs, args.out)
     print_tables(report)
     print(f"wrote {args.out}/pose_eval.json and fig15-17 PNGs")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
