@@ -233,7 +233,7 @@ def _trajectory_png(path, ep, T_world_map, stamps, T_odom, T_lc, lc: LoopClosing
 
 
 def add_arguments(p) -> None:
-    """The options of ``python -m testbed.loop_closing`` and ``dopeslam loop-closure``."""
+    """The options of ``dopeslam loop-closure``."""
     p.add_argument("scenario", nargs="?", default="office_loop")
     p.add_argument("--out", default="out/loop_closure")
     p.add_argument("--seed", type=int, default=None)
@@ -254,16 +254,3 @@ def run_args(a) -> int:
           f"{100 * r['ate_rmse_odometry_only_umeyama_m']:.1f} cm")
     print(f"wrote {a.out}/loop_closure.json, loop_closure.png")
     return 0
-
-
-def main(argv=None) -> int:
-    """``python -m testbed.loop_closing``: the same as ``dopeslam loop-closure``."""
-    import sys
-
-    from testbed.cli import main as cli_main
-
-    return cli_main(["loop-closure", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
