@@ -36,7 +36,6 @@ import json
 import math
 import os
 import re
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -45,6 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from stack.errors import DopeSlamError
 from stack.evidence import EvidenceConfig
+from stack.io import write_text
 from stack.lidar_slam import LidarOdometryConfig
 from stack.loops.closure import LoopClosureConfig
 
@@ -406,14 +406,7 @@ def write_config(config: BaseModel, path: str | Path) -> Path:
     path = Path(path)
     text = dump_toml(config) if path.suffix.lower() == ".toml" else json.dumps(config.model_dump(), indent=1) + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text(path, text)
     return path
 
 

@@ -11,8 +11,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from stack.config import ConfigError, resolve_config
-from testbed.settings import RunConfig
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # imported where used: building the parser stays light
+    from stack.config import ConfigError
 
 # argparse destination -> config key, for the flags that are short forms of --set
 FLAG_KEYS = {
@@ -45,9 +47,16 @@ def flag_sets(args: argparse.Namespace) -> dict:
     return out
 
 
-def config_from_args(args: argparse.Namespace, model=RunConfig, environ=None):
+def config_from_args(args: argparse.Namespace, model=None, environ=None):
     """The resolved config of a parsed command line (``--config``, the environment, ``--set``, then
-    the short-form flags). Raises :class:`stack.config.ConfigError`."""
+    the short-form flags); ``model`` defaults to :class:`testbed.settings.RunConfig`. Raises
+    :class:`stack.config.ConfigError`."""
+    from stack.config import resolve_config
+
+    if model is None:
+        from testbed.settings import RunConfig
+
+        model = RunConfig
     config = resolve_config(getattr(args, "config", None), list(getattr(args, "config_sets", []) or []),
                             environ, model)
     flags = {k: v for k, v in flag_sets(args).items() if k.split(".")[0] in model.model_fields}
@@ -67,3 +76,41 @@ def config_error(command: str, exc: ConfigError) -> int:
     """Print a config error as one line on stderr; the exit status for it (2)."""
     print(f"dopeslam {command}: {exc}", file=sys.stderr)
     return 2
+
+
+# what dopeslam replay applies of the config (the rest, changed from its default, is refused; [run] is
+# the simulator's and is ignored)
+REPLAY_APPLIES = {"detector", "components", "store.policy", "loop_closure.enabled", "loop_closure.vocabulary", "run"}
+
+
+def refuse_unapplied(config, applied: set[str], command: str) -> None:
+    """A setting changed from its default in a section (or key) the command does not apply is an
+    error, never silently ignored. ``applied``: sections (``detector``) and keys (``store.policy``)
+    the command honours."""
+    from stack.config import ConfigError
+
+    default = type(config)()
+    for section in type(config).model_fields:
+        if section in applied:
+            continue
+        have, want = getattr(config, section).model_dump(), getattr(default, section).model_dump()
+        for key in have:
+            if have[key] != want[key] and f"{section}.{key}" not in applied:
+                raise ConfigError(f"key '{section}.{key}': dopeslam {command} does not apply it; "
+                                  f"it applies {', '.join(sorted(applied))}")
+
+
+def finish_outputs(config, out_dir, report: dict, detector, seed=None, scenario=None) -> None:
+    """OUT/config.toml (the resolved config) and report.json's ``provenance``, for a job whose
+    runner does not write them itself."""
+    from pathlib import Path
+
+    from stack.config import write_config
+    from testbed.io import write_json
+    from testbed.provenance import detector_files, provenance
+
+    out = Path(out_dir)
+    write_config(config, out / "config.toml")
+    w, t = detector_files(detector)
+    report["provenance"] = provenance(seed, scenario, w, t)
+    write_json(out / "report.json", {k: v for k, v in report.items() if not k.startswith("_")})
