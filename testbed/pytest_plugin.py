@@ -28,7 +28,7 @@ def dopeslam_run(tmp_path_factory):
         try:
             opts = check_options(options)
         except OptionError as e:
-            raise pytest.UsageError(f"dopeslam_run: {e}") from None
+            raise OptionError(f"dopeslam_run: {e}") from None
         key = (None if scenario is None else str(scenario), int(seed), json.dumps(opts, sort_keys=True))
         if key not in cache:
             name = "dopeslam_" + "".join(ch if ch.isalnum() else "_" for ch in str(scenario or "default"))[-40:]

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 import re
-import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -46,21 +45,34 @@ def cell_dir(out_dir: Path, cell) -> Path:
 
 
 def run_sequential(cells, out_dir, progress: bool = True) -> list[dict]:
-    from testbed.testing.options import run_one
+    """Each cell in its own process (``testbed.testing.worker``), one after the other: a crash in
+    one (the renderer's, say) is that cell's error and the others still run."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
 
     results = []
     for i, cell in enumerate(cells):
         d = cell_dir(Path(out_dir), cell)
-        d.mkdir(parents=True, exist_ok=True)
+        d.parent.mkdir(parents=True, exist_ok=True)
         if progress:
             log.info("cell %d/%d: %s seed %d %s", i + 1, len(cells), cell.scenario, cell.seed, cell.options or "")
-        try:
-            report = run_one(cell.scenario, cell.seed, cell.options, d)
-            results.append({"cell": cell, "status": "ok", "error": None, "report": _plain(report), "out_dir": str(d)})
-        except Exception as exc:  # a cell that fails is a result, the others still run
-            log.debug("cell failed:\n%s", traceback.format_exc())
-            results.append({"cell": cell, "status": "error", "error": f"{type(exc).__name__}: {exc}",
-                            "report": None, "out_dir": str(d)})
+        with tempfile.TemporaryDirectory(prefix="dopeslam_cell_") as tmp:
+            spec, result = Path(tmp) / "spec.json", Path(tmp) / "result.json"
+            spec.write_text(json.dumps({"scenario": cell.scenario, "seed": cell.seed, "options": cell.options,
+                                        "out_dir": str(d), "result": str(result)}))
+            sys.stdout.flush()
+            proc = subprocess.run([sys.executable, "-m", "testbed.testing.worker", str(spec)])
+            data = json.loads(result.read_text()) if result.is_file() else {}
+            if proc.returncode == 0 and "report" in data:
+                results.append({"cell": cell, "status": "ok", "error": None, "report": data["report"],
+                                "out_dir": str(d)})
+                continue
+            why = data.get("error") or (f"killed by signal {-proc.returncode}" if proc.returncode < 0
+                                        else f"exit status {proc.returncode}")
+            results.append({"cell": cell, "status": "error", "error": str(why)[:2000], "report": None,
+                            "out_dir": str(d)})
     return results
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from stack.errors import DopeSlamError
+
 # name -> (type, check, what is expected)
 RUN_OPTIONS = {
     "duration": (float, lambda v: 0 < v <= 3600, "seconds, > 0"),
@@ -31,6 +32,7 @@ class OptionError(DopeSlamError, ValueError):
 
 def coerce(name: str, value, table: dict):
     typ, ok, what = table[name]
+    given = value
     if isinstance(value, str) and typ is not str:  # from --set key=value
         low = value.strip().lower()
         try:
@@ -40,7 +42,7 @@ def coerce(name: str, value, table: dict):
     if typ is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     if not isinstance(value, typ) or (typ is not bool and isinstance(value, bool)) or not ok(value):
-        raise OptionError(f"option '{name}': expected {what}, got {value!r}")
+        raise OptionError(f"option '{name}': expected {what}, got {given!r}")
     return value
 
 
