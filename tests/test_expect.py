@@ -142,3 +142,12 @@ def test_bundled_suites_load_and_set_options():
         else:
             assert c.options["duration"] == 5.0 and c.options["fpr"] is False
     assert next(c for c in plan.cases if c.id == "long-loop").options["loop_closure"] is True
+
+
+def test_stack_settings_pass_through_to_the_config():
+    plan = load_plan(["smoke"], settings=["evidence.min_observations=3"])
+    assert all(c.options["evidence.min_observations"] == "3" for c in plan.cases)
+    with pytest.raises(SuiteError, match="evidence.min_observationz|min_observationz"):
+        load_plan(["smoke"], settings=["evidence.min_observationz=3"])
+    with pytest.raises(SuiteError, match="evidence.min_observations"):
+        load_plan(["smoke"], settings=["evidence.min_observations=many"])

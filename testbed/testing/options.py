@@ -46,6 +46,18 @@ def coerce(name: str, value, table: dict):
     return value
 
 
+def check_setting(key: str, value):
+    """A ``SECTION.KEY`` stack setting checked against the config (``stack.config``); its value as given."""
+    from stack.config import ConfigError, apply_sets
+    from testbed.settings import RunConfig
+
+    try:
+        apply_sets(RunConfig(), {key: value}, source=lambda k: f"option '{k}'")
+    except ConfigError as e:
+        raise OptionError(str(e)) from None
+    return value
+
+
 def check_options(options: dict) -> dict:
     """Validated copy of a case's options (``job`` = run | navigate, then that job's options)."""
     opts = dict(options)
@@ -55,6 +67,9 @@ def check_options(options: dict) -> dict:
     table = NAVIGATE_OPTIONS if job == "navigate" else RUN_OPTIONS
     out = {}
     for name, value in opts.items():
+        if job == "run" and "." in name:  # a stack setting, SECTION.KEY (docs/configuration.md)
+            out[name] = check_setting(name, value)
+            continue
         if name not in table:
             raise OptionError(f"option '{name}': not an option of the {job} job; options: {', '.join(sorted(table))}")
         out[name] = coerce(name, value, table)
@@ -73,6 +88,14 @@ def run_one(scenario: str, seed: int, options: dict, out_dir: str | Path) -> dic
 
         return navigate(opts["object"], scenario, str(out_dir), seed, opts.get("max_seconds"),
                         gyro=not opts.get("wheels_only", False))
+    try:
+        from testbed.matrix import Cell, execute
+    except ImportError:
+        execute = None
+    if execute is not None:  # the options resolved into the stack's config, as `dopeslam run` does
+        from sim.scenario import DEFAULT_SCENARIO
+
+        return execute(Cell(DEFAULT_SCENARIO if scenario is None else str(scenario), int(seed), opts), Path(out_dir))
     from stack.interfaces import load_detector, resolve_policy
     from testbed.run import run_episode
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from stack.errors import DopeSlamError
 from testbed.testing.cells import Cell, parse_seeds
 from testbed.testing.expect import ExpectError, Expectation, Outcome, evaluate_all, parse_expectations
-from testbed.testing.options import OptionError, RUN_OPTIONS, check_options, coerce
+from testbed.testing.options import RUN_OPTIONS, OptionError, check_options, check_setting, coerce
 
 SUITES_DIR = Path(__file__).resolve().parent.parent / "suites"
 SUITE_KEYS = {"name", "description", "seeds", "options", "expect", "scenarios", "baseline_tolerance"}
@@ -175,10 +175,11 @@ def load_plan(targets: list[str], seeds: str | None = None, settings: list[str] 
     for s in settings or []:
         key, sep, value = s.partition("=")
         key = key.strip()
-        if not sep or key not in RUN_OPTIONS:
-            raise SuiteError(f"--set {s!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(RUN_OPTIONS))}")
+        if not sep or (key not in RUN_OPTIONS and "." not in key):
+            raise SuiteError(f"--set {s!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(RUN_OPTIONS))} "
+                             f"or a stack setting SECTION.KEY")
         try:
-            v = coerce(key, value, RUN_OPTIONS)
+            v = check_setting(key, value.strip()) if "." in key else coerce(key, value, RUN_OPTIONS)
         except OptionError as e:
             raise SuiteError(f"--set: {e}") from None
         for c in cases:
