@@ -154,3 +154,17 @@ def test_wheel_slip_over_reports_distance():
     true_end = of(stream(), WheelOdometry)[-1].T_odom_base[0, 3]
     ratio = wheel[-1].T_odom_base[0, 3] / true_end
     assert 1.05 < ratio < 1.15  # on average 1 + 0.2 / 2
+
+
+def test_experiment_sweep_option():
+    from pydantic import ValidationError
+
+    from testbed.experiments.faults import SWEEP, parse_faults_option
+
+    assert parse_faults_option("lidar_drop=0,0.2;camera_latency=0,0.05") == \
+        {"lidar_drop": (0.0, 0.2), "camera_latency": (0.0, 0.05)}
+    assert set(SWEEP) == set(Faults.model_fields)  # every fault has a default sweep
+    with pytest.raises(ValueError, match="expected NAME=RATE"):
+        parse_faults_option("nothing=1")
+    with pytest.raises(ValidationError):
+        parse_faults_option("camera_drop=0,3")
