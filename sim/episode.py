@@ -22,7 +22,7 @@ from sim.events import WorldEvents
 from sim.lidar import BeamPattern, BoxRayCaster
 from sim.objects import cuboid_keypoints
 from sim.robot import Jackal
-from sim.scenario import Scenario, load_scenario
+from sim.scenario import Scenario, load_scenario, with_overrides
 from sim.world import build_world
 from stack.messages import CameraFrame, LidarScan, WheelOdometry
 from stack.transforms import interpolate_trajectory, inv, transform_points, yaw_of
@@ -111,6 +111,7 @@ class Episode:
         their order are the same either way. None: as the environment variable DOPESLAM_RENDER_WORKER
         says (1 = on), else off."""
         self.sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+        with_overrides(self.sc, seed=seed, duration=duration, light=light)  # checked as the file is: ScenarioError
         self.seed = self.sc.seed if seed is None else int(seed)
         self.duration = self.sc.duration if duration is None else float(duration)
         self.light = self.sc.light if light is None else float(light)

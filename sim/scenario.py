@@ -12,6 +12,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from sim.events import Event, check_events
@@ -35,7 +36,7 @@ class ScenarioError(DopeSlamError, ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # every number finite
 
 
 class Room(_Strict):
@@ -171,9 +172,96 @@ class Scenario(_Strict):
                 raise ValueError(f"route.pauses.{i}: expected [waypoint index 0..{len(self.route.waypoints) - 1}, seconds >= 0]")
         return self
 
+    @model_validator(mode="after")
+    def _geometry(self):
+        check_geometry(self)
+        return self
+
     @property
     def object_names(self) -> list[str]:
         return [o.name for o in self.objects]
+
+
+ROBOT_RADIUS_M = 0.26  # the Jackal's footprint (0.42 x 0.31 m chassis, wheels inside) as a circle
+WAYPOINT_CLEARANCE_M = 0.15  # a waypoint this near furniture is unreachable without touching it
+
+
+def _footprint(f: Furniture) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre, unit axes (2 x 2, rows) and half sizes of a piece of furniture on the floor."""
+    yaw = np.radians(f.yaw_deg)
+    axes = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+    return np.asarray(f.position, dtype=float), axes, np.asarray(f.size[:2], dtype=float) / 2
+
+
+def _inside(f: Furniture, xy, margin: float = 0.0) -> bool:
+    """Whether the floor point ``xy`` lies within ``margin`` of the furniture's footprint (or in it)."""
+    c, axes, half = _footprint(f)
+    local = np.abs(axes @ (np.asarray(xy[:2], dtype=float) - c))
+    gap = np.maximum(local - half, 0.0)
+    return bool(np.hypot(*gap) < margin) if margin > 0 else bool(np.all(local < half))
+
+
+def check_geometry(sc: "Scenario") -> None:
+    """A world that can be built and driven: furniture within the room and under its ceiling, the
+    robot's start and the route's waypoints clear of furniture, objects not buried inside
+    furniture and not inside each other. Raises ValueError naming the field."""
+    hx, hy = sc.room.size[0] / 2, sc.room.size[1] / 2
+    for i, f in enumerate(sc.furniture):
+        c, axes, half = _footprint(f)
+        corners = c + np.array([[sx, sy] for sx in (-1, 1) for sy in (-1, 1)]) * half @ axes
+        wall = sc.room.wall_thickness  # furniture may stand against a wall, reaching into it
+        if np.any(np.abs(corners[:, 0]) > hx + wall) or np.any(np.abs(corners[:, 1]) > hy + wall):
+            raise ValueError(f"furniture.{i} ({f.name or f.kind}): its footprint reaches outside the room "
+                             f"(|x| <= {hx}, |y| <= {hy}, walls {wall} m thick)")
+        if f.size[2] > sc.room.wall_height:
+            raise ValueError(f"furniture.{i} ({f.name or f.kind}): height {f.size[2]} m is above the walls "
+                             f"({sc.room.wall_height} m)")
+    start = sc.robot.start
+    if abs(start[0]) > hx - ROBOT_RADIUS_M or abs(start[1]) > hy - ROBOT_RADIUS_M:
+        raise ValueError(f"robot.start {start[:2]}: the robot ({ROBOT_RADIUS_M} m) would stand in a wall")
+    for i, f in enumerate(sc.furniture):
+        if _inside(f, start, ROBOT_RADIUS_M):
+            raise ValueError(f"robot.start {start[:2]}: the robot ({ROBOT_RADIUS_M} m) would stand inside "
+                             f"furniture.{i} ({f.name or f.kind})")
+        for j, w in enumerate(sc.route.waypoints):
+            if _inside(f, w, WAYPOINT_CLEARANCE_M):
+                raise ValueError(f"route.waypoints.{j} {w[:2]}: within {WAYPOINT_CLEARANCE_M} m of (or inside) "
+                                 f"furniture.{i} ({f.name or f.kind})")
+    for k, o in enumerate(sc.objects):
+        for i, f in enumerate(sc.furniture):
+            if f.kind in ("box", "pillar") and _inside(f, o.position) and o.height < f.size[2] - 0.01:
+                raise ValueError(f"objects.{k} ({o.cls}): at height {o.height} m inside furniture.{i} "
+                                 f"({f.name or f.kind}, {f.size[2]} m tall); put it on top (height = {f.size[2]})")
+        for m in range(k):
+            q = sc.objects[m]
+            if abs(q.height - o.height) < 0.05 and np.hypot(o.position[0] - q.position[0],
+                                                             o.position[1] - q.position[1]) < 0.05:
+                raise ValueError(f"objects.{k} ({o.cls}) and objects.{m} ({q.cls}) stand in the same place")
+
+
+def with_overrides(sc: "Scenario", *, seed: int | None = None, duration: float | None = None,
+                   light: float | None = None) -> "Scenario":
+    """``sc`` with command-line overrides, validated by the same model as the file: ScenarioError
+    names the option and what was expected (``--light 5``, ``--duration nan``, ``--seed -1``)."""
+    given = {k: v for k, v in (("seed", seed), ("duration", duration), ("light", light)) if v is not None}
+    if not given:
+        return sc
+    data = {**sc.model_dump(by_alias=True, exclude={"source"}), **given}
+    if "light" in given:
+        data["light_schedule"] = []  # an override wins over the schedule
+    try:
+        out = Scenario.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = str(err["loc"][0]) if err["loc"] else ""
+        if key in given:
+            raise ScenarioError(f"--{key} {given[key]}: {err['msg']}") from None
+        loc = ".".join(str(x) for x in err["loc"])
+        raise ScenarioError(f"{sc.source or sc.name}: field '{loc}': {err['msg']} (with --{' --'.join(given)})") from None
+    for a, b in zip(out.objects, sc.objects):
+        a.name = b.name
+    out.source = sc.source
+    return out
 
 
 def _merge(base: dict, over: dict) -> dict:

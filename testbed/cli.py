@@ -45,12 +45,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# commands whose SCENARIO, --seed, --duration and --light are an episode's: checked before any work starts
+SCENARIO_COMMANDS = {"run", "simulate", "odometry", "record", "navigate", "compare", "loop-closure", "loop-eval"}
+
+
+def check_scenario_args(args) -> None:
+    """The scenario named on the command line loaded (ScenarioError: one line) and the overrides
+    validated by the scenario's own model (``--light 5``, ``--duration nan``, ``--seed -1``)."""
+    if args.command not in SCENARIO_COMMANDS or "scenario" not in vars(args):
+        return
+    from sim.scenario import load_scenario, with_overrides
+
+    scenario = args.scenario
+    if isinstance(scenario, (list, tuple)):
+        scenario = scenario[0] if scenario else None
+    with_overrides(load_scenario(scenario), seed=getattr(args, "seed", None),
+                   duration=getattr(args, "duration", None), light=getattr(args, "light", None))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
+        check_scenario_args(args)
         if not getattr(args, "json", False):
             return int(args.func(args) or 0)
         # --json: only JSON on stdout; what the command prints (and the renderer's chatter) goes to stderr.

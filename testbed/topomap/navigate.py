@@ -165,6 +165,8 @@ def navigate(object_name: str, scenario=None, out_dir="out/navigate", seed: int 
     from sim.scenario import load_scenario
     from testbed.io import write_json
 
+    if stream is None and not hasattr(scenario, "objects"):  # OBJECT checked before the mapping episode
+        resolve_object(object_name, load_scenario(scenario).objects)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     wall0 = time.perf_counter()

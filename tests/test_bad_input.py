@@ -1,0 +1,129 @@
+"""Bad input ends in one line on stderr and exit status 2, before any work starts; impossible
+worlds are refused; outputs never destroy what is there."""
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from sim.scenario import ScenarioError, default_scenario_path, load_scenario, with_overrides
+from stack.errors import DopeSlamError
+from testbed.cli import main
+
+
+def _cli(capsys, *argv) -> tuple[int, str]:
+    rc = main(list(argv))
+    err = capsys.readouterr().err.strip().splitlines()
+    return rc, err[-1] if err else ""
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["run", "--light", "5"], "--light 5.0: Input should be less than or equal to 1"),
+    (["run", "--duration", "0"], "--duration 0.0: Input should be greater than 0"),
+    (["run", "--duration", "nan"], "--duration nan: Input should be a finite number"),
+    (["run", "--duration", "1e9"], "--duration 1000000000.0: Input should be less than or equal to 3600"),
+    (["run", "--seed", "-1"], "--seed -1: Input should be greater than or equal to 0"),
+    (["simulate", "--duration=-1"], "--duration -1.0: Input should be greater than 0"),
+    (["odometry", "--duration", "inf"], "--duration inf: Input should be a finite number"),
+    (["run", "Unicorn"], "Unicorn: no such scenario file, and no bundled scenario of that name"),
+    (["navigate", "Unicorn"], "OBJECT: expected one of the scenario's objects"),
+])
+def test_bad_command_line_is_one_line_and_exit_2(capsys, tmp_path, argv, says):
+    rc, line = _cli(capsys, *argv, "--out", str(tmp_path / "out"))
+    assert rc == 2
+    assert says in line and line.startswith(f"dopeslam {argv[0]}: ")
+    assert not (tmp_path / "out").exists()  # nothing started
+
+
+def _scene(tmp_path, text: str):
+    base = default_scenario_path().read_text()
+    p = tmp_path / "scene.toml"
+    p.write_text(base + "\n" + text)
+    return p
+
+
+def _scene_replacing(tmp_path, old: str, new: str):
+    text = default_scenario_path().read_text()
+    assert old in text
+    p = tmp_path / "scene.toml"
+    p.write_text(text.replace(old, new, 1))
+    return p
+
+
+@pytest.mark.parametrize("extra, says", [
+    ('[[furniture]]\nkind = "box"\nposition = [0.0, 0.0]\nsize = [100.0, 100.0, 1.0]\n', "reaches outside the room"),
+    ('[[furniture]]\nkind = "pillar"\nposition = [0.0, 0.0]\nsize = [0.3, 0.3, 50.0]\n', "above the walls"),
+])
+def test_impossible_furniture_is_refused(tmp_path, extra, says):
+    with pytest.raises(ScenarioError, match=says):
+        load_scenario(_scene(tmp_path, extra))
+
+
+def test_robot_inside_a_pillar_is_refused(tmp_path):
+    sc = load_scenario(None)
+    x, y = sc.robot.start[:2]
+    p = _scene(tmp_path, f'[[furniture]]\nkind = "pillar"\nposition = [{x}, {y}]\nsize = [0.3, 0.3, 2.0]\n')
+    with pytest.raises(ScenarioError, match="robot.start .* inside furniture"):
+        load_scenario(p)
+
+
+def test_object_buried_in_a_box_and_objects_in_one_place_are_refused(tmp_path):
+    sc = load_scenario(None)
+    o = sc.objects[0]
+    box = (f'[[furniture]]\nkind = "box"\nposition = [{o.position[0]}, {o.position[1]}]\n'
+           f'size = [0.3, 0.3, {o.height + 0.5}]\n')
+    with pytest.raises(ScenarioError, match=r"objects.0 .* inside furniture"):
+        load_scenario(_scene(tmp_path, box))
+    twin = (f'[[objects]]\nclass = "{sc.objects[1].cls}"\nname = "twin"\nposition = [{o.position[0]}, {o.position[1]}]\n'
+            f'height = {o.height}\n')
+    with pytest.raises(ScenarioError, match="stand in the same place"):
+        load_scenario(_scene(tmp_path, twin))
+
+
+def test_nan_and_inf_anywhere_in_a_scene_are_refused(tmp_path):
+    text = default_scenario_path().read_text()
+    import re
+
+    m = re.search(r"yaw_deg = ([-0-9.]+)", text)
+    assert m
+    p = _scene_replacing(tmp_path, m.group(0), "yaw_deg = nan")
+    with pytest.raises(ScenarioError, match="finite"):
+        load_scenario(p)
+
+
+def test_overrides_go_through_the_model():
+    sc = load_scenario(None)
+    assert with_overrides(sc, light=0.25).light == 0.25
+    assert with_overrides(sc, seed=7, duration=12.5).duration == 12.5
+    with pytest.raises(ScenarioError, match="--light"):
+        with_overrides(sc, light=float("nan"))
+    assert issubclass(ScenarioError, DopeSlamError)
+
+
+def test_bundled_scenarios_pass_the_geometry_checks():
+    from sim.scenario import SCENES_DIR
+
+    for p in sorted(SCENES_DIR.rglob("*.toml")):
+        load_scenario(p)
+
+
+def test_replay_never_writes_its_results_bag_over_the_input(capsys, tmp_path):
+    bag = tmp_path / "field"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("precious")
+    rc, line = _cli(capsys, "replay", str(bag), "--out", str(tmp_path / "o"), "--results-bag", str(bag), "--force")
+    assert rc == 2 and "is (or holds, or lies inside) the input" in line
+    other = tmp_path / "mine"
+    other.mkdir()
+    rc, line = _cli(capsys, "replay", str(bag), "--out", str(tmp_path / "o"), "--results-bag", str(other))
+    assert rc == 2 and "exists already; pass --force" in line
+    assert (bag / "metadata.yaml").read_text() == "precious" and other.is_dir()
+
+
+def test_replay_refuses_an_out_folder_inside_the_bag(tmp_path):
+    from testbed.replay import replay_bag
+
+    bag = tmp_path / "field"
+    shutil.copytree(tmp_path, bag, dirs_exist_ok=True)
+    with pytest.raises(DopeSlamError, match="lies inside, the input bag"):
+        replay_bag(bag, bag / "out")
