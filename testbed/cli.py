@@ -1,12 +1,15 @@
 """The ``dopeslam`` command line. Each sub-command lives in its own module under
 ``testbed/commands/`` and exposes ``register(subparsers)``; the module list below
-is the single registry."""
+is the single registry. Building the parser imports no simulator, network or odometry:
+each command imports what it needs when it runs."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import importlib
 import logging
+import os
 import sys
 
 from stack.errors import DopeSlamError
@@ -27,12 +30,92 @@ COMMAND_MODULES = [
     "testbed.commands.topomap",
     "testbed.commands.loops",
     "testbed.commands.test",
+    "testbed.commands.sweep",
 ]
 
 
+DESCRIPTION = """\
+A simulated Clearpath Jackal (PyBullet: RealSense D435i colour and depth, 32-beam Velodyne) drives
+through scripted scenarios while the DOPESLAM stack under test (KISS-ICP LiDAR odometry, DOPE 6-DoF
+object poses, false-positive reduction, fusion into a persistent object map) runs on its sensors;
+every result is scored against the simulator's ground truth. The same stack runs on ROS 1 and
+ROS 2 bags (replay), with or without ground truth.
+
+Start with `dopeslam run` (a scored episode of the default scenario) and `dopeslam COMMAND --help`."""
+
+EPILOG = "Progress bars go to stderr when it is a terminal (--quiet turns them off); results go to stdout."
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Every option's help ends with its default, unless the help already says it."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.default is argparse.SUPPRESS or "%(default)" in text or "default" in text.lower():
+            return text
+        if not action.option_strings and action.nargs not in ("?", "*"):
+            return text  # a required positional has no default
+        if action.nargs == 0 and action.default is False:
+            shown = "off"
+        elif action.default is None or action.default == []:
+            shown = "none"
+        else:
+            shown = "%(default)s"
+        return f"{text} (default: {shown})" if text else f"(default: {shown})"
+
+
+class _RawDescription(HelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The top level: the description's paragraphs as written."""
+
+
+class _SubCommands(argparse._SubParsersAction):
+    """Sub-commands get the command's one-line help as their description too."""
+
+    def add_parser(self, name, **kwargs):
+        if "help" in kwargs and "description" not in kwargs:
+            kwargs["description"] = kwargs["help"]
+        return super().add_parser(name, **kwargs)
+
+
+class CommandParser(argparse.ArgumentParser):
+    """The parser of ``dopeslam`` and each sub-command: defaults shown; ``-q/--quiet`` on every command."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+        self.register("action", "parsers", _SubCommands)
+        if kwargs.get("add_help", True) and kwargs.get("prog") != "dopeslam":
+            # SUPPRESS: given after the command it sets args.quiet; absent, the top level's value stays
+            self.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                              help="no progress bars (they go to stderr, and only when it is a terminal)")
+
+
+class _Version(argparse.Action):
+    """``--version``: the installed package's version (read only when asked)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"dopeslam {package_version()}")
+        parser.exit()
+
+
+def package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("dopeslam-testbed")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed: pip install -e .)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="dopeslam", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="dopeslam", description=DESCRIPTION, epilog=EPILOG, formatter_class=_RawDescription)
+    parser.add_argument("--version", action=_Version, help="print the version and exit")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress bars (they go to stderr, and only when it is a terminal)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
         try:
@@ -43,6 +126,34 @@ def build_parser() -> argparse.ArgumentParser:
             raise
         module.register(sub)
     return parser
+
+
+@contextlib.contextmanager
+def c_stdout_to_stderr():
+    """While a command runs, file descriptor 1 (where C libraries such as PyBullet print their
+    banners) goes to stderr; Python's ``print`` still reaches the real stdout. Off when stdout is
+    not descriptor 1 (e.g. captured)."""
+    try:
+        if sys.stdout.fileno() != 1:
+            raise ValueError
+    except (AttributeError, OSError, ValueError):
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    old = sys.stdout
+    sys.stdout = os.fdopen(saved, "w", buffering=1 if getattr(old, "line_buffering", False) else -1,
+                           encoding=old.encoding, errors=old.errors)
+    try:
+        yield
+    finally:
+        try:
+            sys.stdout.flush()
+        finally:
+            os.dup2(saved, 1)
+            sys.stdout.close()
+            sys.stdout = old
 
 
 # commands whose SCENARIO, --seed, --duration and --light are an episode's: checked before any work starts
@@ -68,10 +179,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
+    from testbed import progress
+
+    progress.configure(quiet=getattr(args, "quiet", False))
     try:
         check_scenario_args(args)
         if not getattr(args, "json", False):
-            return int(args.func(args) or 0)
+            with c_stdout_to_stderr():
+                return int(args.func(args) or 0)
         # --json: only JSON on stdout; what the command prints (and the renderer's chatter) goes to stderr.
         # A command that supports it leaves its result in args.json_result.
         from testbed.testing.jsonout import stdout_to_stderr
