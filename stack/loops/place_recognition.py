@@ -2,7 +2,7 @@
 
 The method of the topological-map paper (section 2.1): a key frame (one image in ten) is blurred (Gaussian), its
 Shi-Tomasi corners are found and described by SIFT descriptors (L2-normalised); the descriptors are
-quantised by a vocabulary tree built by hierarchical k-means (Nister & Stewenius); each leaf is a
+quantised by a vocabulary tree built by hierarchical k-means (Nister & Stewenius; ``cv2.kmeans``); each leaf is a
 visual word with an inverted file (the key frames it occurs in); a query is scored against the
 database with the TF-IDF model (Sivic & Zisserman) and the best-scoring earlier key frames are the
 places it may be.
@@ -38,6 +38,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from stack.errors import DopeSlamError
+
 log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
@@ -130,32 +131,13 @@ def describe(image: np.ndarray, config: FeatureConfig | None = None) -> KeyFrame
 
 
 def _kmeans(x: np.ndarray, k: int, rng: np.random.Generator, iterations: int) -> tuple[np.ndarray, np.ndarray]:
-    """Lloyd's k-means with k-means++ seeding: (centres (k, D), labels (N,)). Requires len(x) >= k."""
-    n = len(x)
-    centres = np.empty((k, x.shape[1]), dtype=np.float64)
-    centres[0] = x[rng.integers(n)]
-    d2 = ((x - centres[0]) ** 2).sum(1)
-    for j in range(1, k):
-        total = d2.sum()
-        i = rng.choice(n, p=d2 / total) if total > 0 else rng.integers(n)
-        centres[j] = x[i]
-        d2 = np.minimum(d2, ((x - centres[j]) ** 2).sum(1))
-    x2 = (x ** 2).sum(1)
-    labels = np.zeros(n, dtype=np.int64)
-    for it in range(iterations):
-        dist = x2[:, None] - 2.0 * x @ centres.T + (centres ** 2).sum(1)[None, :]
-        new = dist.argmin(1)
-        if it > 0 and np.array_equal(new, labels):
-            break
-        labels = new
-        for j in range(k):
-            members = x[labels == j]
-            if len(members):
-                centres[j] = members.mean(0)
-            else:  # an empty cluster takes the point farthest from its centre
-                far = int(dist[np.arange(n), labels].argmax())
-                centres[j] = x[far]
-    return centres, labels
+    """k-means with k-means++ seeding (OpenCV's ``cv2.kmeans``, its random stream seeded from ``rng``):
+    (centres (k, D), labels (N,)). Requires len(x) >= k."""
+    cv2.setRNGSeed(int(rng.integers(2**31 - 1)))
+    criteria = (cv2.TERM_CRITERIA_MAX_ITER + cv2.TERM_CRITERIA_EPS, iterations, 1e-6)
+    _, labels, centres = cv2.kmeans(np.ascontiguousarray(x, dtype=np.float32), k, None, criteria, 1,
+                                    cv2.KMEANS_PP_CENTERS)
+    return centres.astype(np.float64), labels.ravel().astype(np.int64)
 
 
 class VocabularyError(DopeSlamError, ValueError):

@@ -137,16 +137,16 @@ def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def nms(boxes: np.ndarray, scores: np.ndarray, threshold: float = 0.4) -> np.ndarray:
-    order = np.argsort(-scores)
-    keep = []
-    while len(order):
-        i = order[0]
-        keep.append(i)
-        if len(order) == 1:
-            break
-        o = iou(boxes[i:i + 1], boxes[order[1:]])[0]
-        order = order[1:][o <= threshold]
-    return np.array(keep, dtype=int)
+    """Greedy non-maximum suppression (OpenCV's ``cv2.dnn.NMSBoxes``): indices of the boxes kept, best
+    first; a box is dropped when its IoU with a kept, better-scoring one exceeds ``threshold``."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    scores = np.asarray(scores, dtype=np.float64).ravel()
+    if len(boxes) == 0:
+        return np.zeros(0, dtype=int)
+    xywh = np.column_stack([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]])
+    ranked = scores - scores.min() + 1.0  # NMSBoxes wants scores >= its threshold >= 0; the order is the same
+    keep = cv2.dnn.NMSBoxes(xywh.tolist(), ranked.tolist(), 0.0, float(threshold))
+    return np.asarray(keep, dtype=int).ravel()
 
 
 # --- the model -----------------------------------------------------------------------------------
@@ -312,28 +312,19 @@ def window_features(rgb: np.ndarray, box, shape: tuple[int, int], cell: int) -> 
 
 
 def train_linear_svm(X: np.ndarray, y: np.ndarray, C: float = 0.01, pos_weight: float = 1.0,
-                     w0: np.ndarray | None = None, max_iter: int = 400) -> tuple[np.ndarray, float]:
-    """L2-regularised squared-hinge linear SVM in the primal (L-BFGS): min 0.5|w|^2 + C sum_i c_i max(0, 1 - y_i (w.x_i + b))^2."""
-    from scipy.optimize import minimize
+                     max_iter: int = 1000) -> tuple[np.ndarray, float]:
+    """L2-regularised squared-hinge linear SVM, min 0.5|w|^2 + C sum_i c_i max(0, 1 - y_i (w.x_i + b))^2
+    (c_i = ``pos_weight`` for positives, 1 for negatives), solved in the primal by liblinear
+    (scikit-learn's ``LinearSVC``). liblinear regularises the bias as one more weight on a constant
+    feature; that feature is large (``intercept_scaling`` 100), so the bias is in effect free."""
+    from sklearn.svm import LinearSVC
 
     X = np.asarray(X, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
-    cw = np.where(y > 0, pos_weight, 1.0) * C
-    d = X.shape[1]
-
-    def f(p):
-        w, b = p[:d], p[d]
-        m = 1 - y * (X @ w + b)
-        act = m > 0
-        loss = 0.5 * w @ w + np.sum(cw[act] * m[act] ** 2)
-        g = -2 * cw[act] * m[act] * y[act]
-        gw = w + X[act].T @ g
-        gb = g.sum()
-        return loss, np.r_[gw, gb]
-
-    p0 = np.zeros(d + 1) if w0 is None else w0
-    res = minimize(f, p0, jac=True, method="L-BFGS-B", options={"maxiter": max_iter})
-    return res.x[:d], float(res.x[d])
+    svm = LinearSVC(penalty="l2", loss="squared_hinge", dual=False, C=C, fit_intercept=True,
+                    intercept_scaling=100.0, tol=1e-6, max_iter=max_iter)
+    svm.fit(X, (y > 0).astype(int), sample_weight=np.where(y > 0, pos_weight, 1.0))
+    return svm.coef_.ravel().copy(), float(svm.intercept_[0])
 
 
 def component_shapes(boxes: np.ndarray, n_components: int = 3, cells_area: float = 40.0,
@@ -450,7 +441,7 @@ def train_detector(images: list[TrainingImage], classes: list[str], cell: int = 
             Xp_a, Xn_a = data[ci]
             Xn_a = np.vstack([Xn_a, np.array(Xh, dtype=np.float32).reshape(len(Xh), -1)])
             data[ci] = (Xp_a, Xn_a)
-            w, b = _fit(Xp_a, Xn_a, C, np.r_[c.w.ravel(), c.bias])
+            w, b = _fit(Xp_a, Xn_a, C)
             c.w = w.reshape(c.w.shape).astype(np.float32)
             c.bias = b
         log.info("mining round %d done: %d hard negatives (%.0f s)", r + 1, sum(len(h) for h in hard.values()),
@@ -458,10 +449,10 @@ def train_detector(images: list[TrainingImage], classes: list[str], cell: int = 
     return det
 
 
-def _fit(Xp: np.ndarray, Xn: np.ndarray, C: float, w0: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+def _fit(Xp: np.ndarray, Xn: np.ndarray, C: float) -> tuple[np.ndarray, float]:
     X = np.vstack([Xp, Xn])
     y = np.r_[np.ones(len(Xp)), -np.ones(len(Xn))]
-    return train_linear_svm(X, y, C, pos_weight=0.5 * len(Xn) / max(1, len(Xp)), w0=w0)
+    return train_linear_svm(X, y, C, pos_weight=0.5 * len(Xn) / max(1, len(Xp)))
 
 
 def fit_colour_model(images: list[TrainingImage], classes: list[str], quantile: float = 0.95,

@@ -3,7 +3,7 @@
 The pipeline (the paper's steps 1-7):
 
 1. Initialise with the first two key frames and the distance between them (the "given baseline"):
-   eight-point essential matrix in RANSAC, decomposition, cheirality; triangulated points fix the
+   essential matrix in RANSAC (OpenCV), decomposition, cheirality; triangulated points fix the
    world frame (= the first key frame's camera) and the metric scale.
 2. Every new frame: Shi-Tomasi corners on the Gaussian-blurred image, upright SIFT descriptors
    (L2-normalised), matched to the last key frame inside a search region (0.08 x max(width,
@@ -16,12 +16,14 @@ The pipeline (the paper's steps 1-7):
      inliers (< 2 px) wins. Adaptive stopping at 99 % confidence. (For speed each batch of
      hypotheses is first scored on 24 random points and only the best four on all of them.)
    - ``trpe`` (Wu's two-RANSAC method, the paper's foil): RANSAC 1 finds the best essential matrix
-     from all 2D-2D matches (Sampson error), its (R, t-direction) chosen by cheirality; RANSAC 2
+     from all 2D-2D matches (OpenCV's ``findEssentialMat``, Sampson error, MSAC), its (R, t-direction)
+     chosen by cheirality (``recoverPose``); RANSAC 2
      then finds the translation's length from single 3D points. When the essential matrix is
      degenerate (small baseline, near-planar structure) RANSAC 2 has nothing right to scale.
    - ``grunert`` (the classical P3P): Grunert's solution (as reviewed by Haralick et al. 1994) in a
      RANSAC over three map points, up to four poses each.
-4. Levenberg-Marquardt refinement of the pose on the inliers (reprojection error < 2 px).
+4. Levenberg-Marquardt refinement of the pose on the inliers (reprojection error < 2 px; OpenCV's
+   ``solvePnPRefineLM``).
 5. Key frames: a frame becomes one when enough image motion has built up; new points are
    triangulated between it and the previous key frame (negative, very far and low-parallax points
    dropped).
@@ -291,19 +293,19 @@ def _rotmat(r: np.ndarray) -> np.ndarray:
 
 def refine_pose_lm(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.ndarray,
                    iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt on the reprojection error of (R, t) over the given 3D-2D inliers."""
+    """Levenberg-Marquardt on the reprojection error of (R, t) over the given 3D-2D inliers
+    (OpenCV's ``solvePnPRefineLM``)."""
     if len(X) < 4:
         return R, t
-
-    def resid(p):
-        px, _ = project(K, _rotmat(p[:3]), p[3:], X)
-        return (px - uv).ravel()
-
-    p0 = np.r_[_rotvec(R), t]
-    sol = least_squares(resid, p0, method="lm", max_nfev=iterations * 7)
-    if not np.all(np.isfinite(sol.x)):
+    rvec = _rotvec(R).reshape(3, 1).astype(np.float64)
+    tvec = np.asarray(t, dtype=np.float64).reshape(3, 1).copy()
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, iterations, 1e-10)
+    rvec, tvec = cv2.solvePnPRefineLM(np.ascontiguousarray(X, dtype=np.float64),
+                                      np.ascontiguousarray(uv, dtype=np.float64), K.astype(np.float64), None,
+                                      rvec, tvec, criteria)
+    if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
         return R, t
-    return _rotmat(sol.x[:3]), sol.x[3:].copy()
+    return _rotmat(rvec), tvec.ravel().copy()
 
 
 def _samples(rng: np.random.Generator, n: int, k: int, batch: int) -> np.ndarray:
@@ -396,58 +398,36 @@ def _finish(K, best, X, uv, iterations, cfg) -> PoseEstimate | None:
     return PoseEstimate(R, t, inl, iterations, n_ransac)
 
 
-def sampson_px(E: np.ndarray, x1h: np.ndarray, x2h: np.ndarray, f: float) -> np.ndarray:
-    """Sampson distance (pixels, with focal length f) of correspondences to essential matrices (..., 3, 3)."""
-    Ex1 = np.einsum("...ij,nj->...ni", E, x1h)
-    Etx2 = np.einsum("...ji,nj->...ni", E, x2h)
-    num = np.einsum("ni,...ni->...n", x2h, Ex1)
-    den = Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2
-    return f * np.abs(num) / np.sqrt(np.maximum(den, 1e-18))
-
-
 def essential_ransac(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, rng: np.random.Generator,
-                     cfg: MonoConfig = MonoConfig(), batch: int = 32):
-    """Best essential matrix by eight-point RANSAC on Sampson error; returns (E, inlier mask) or None."""
-    n = len(uv1)
-    if n < 8:
+                     cfg: MonoConfig = MonoConfig()):
+    """Best essential matrix in RANSAC (OpenCV's ``findEssentialMat``: five-point hypotheses, MSAC score
+    on the Sampson error with threshold ``cfg.inlier_px``, local optimisation and a least-squares
+    polish on the inliers, seeded from ``rng``); returns (E, inlier mask) or None."""
+    if len(uv1) < 8:
         return None
-    x1 = normalise(uv1, K)
-    x2 = normalise(uv2, K)
-    x1h = np.column_stack([x1, np.ones(n)])
-    x2h = np.column_stack([x2, np.ones(n)])
-    f = 0.5 * (K[0, 0] + K[1, 1])
-    best_count, best = -1, None
-    needed, done = cfg.max_iterations, 0
-    while done < min(needed, cfg.max_iterations) or done < cfg.min_iterations:
-        idx = _samples(rng, n, 8, batch)
-        E = eight_point(x1[idx], x2[idx])
-        counts = (sampson_px(E, x1h, x2h, f) < cfg.inlier_px).sum(-1)
-        b = int(np.argmax(counts))
-        done += batch
-        if counts[b] > best_count:
-            best_count = int(counts[b])
-            best = E[b]
-            needed = _needed_iterations(best_count / n, 8, cfg.confidence, cfg.max_iterations)
-    inl = sampson_px(best, x1h, x2h, f) < cfg.inlier_px
-    if inl.sum() >= 8:  # re-estimate on all inliers
-        E2 = eight_point(x1[inl], x2[inl])
-        inl2 = sampson_px(E2, x1h, x2h, f) < cfg.inlier_px
-        if inl2.sum() >= inl.sum():
-            best, inl = E2, inl2
-    return best, inl
+    p = cv2.UsacParams()
+    p.confidence, p.maxIterations, p.threshold = cfg.confidence, cfg.max_iterations, cfg.inlier_px
+    p.randomGeneratorState = int(rng.integers(2**31 - 1))
+    p.sampler, p.score = cv2.SAMPLING_UNIFORM, cv2.SCORE_METHOD_MSAC
+    p.loMethod, p.loIterations, p.loSampleSize = cv2.LOCAL_OPTIM_GC, 10, 14
+    p.final_polisher, p.final_polisher_iterations = cv2.LSQ_POLISHER, 3
+    K = K.astype(np.float64)
+    try:
+        E, mask = cv2.findEssentialMat(np.ascontiguousarray(uv1, dtype=np.float64),
+                                       np.ascontiguousarray(uv2, dtype=np.float64), K, K, None, None, p)
+    except cv2.error:  # a degenerate configuration
+        return None
+    if E is None or E.shape[0] < 3 or mask is None or int(mask.sum()) < 8:
+        return None
+    return E[:3].copy(), mask.ravel().astype(bool)
 
 
 def pose_from_essential(K: np.ndarray, E: np.ndarray, uv1: np.ndarray, uv2: np.ndarray):
-    """The decomposition of E that puts most triangulated points in front of both cameras."""
-    R, t = decompose_essential(E)
-    T1 = np.eye(4)
-    best, best_n = None, -1
-    for k in range(4):
-        X, ok = triangulate(K, T1, _rt_to_T(R[k], t[k]), uv1, uv2, 0.0, 1e9, 1e9)
-        n_front = int(ok.sum())
-        if n_front > best_n:
-            best_n, best = n_front, (R[k], t[k])
-    return best[0], best[1], best_n
+    """The decomposition of E that puts most points in front of both cameras (OpenCV's ``recoverPose``):
+    (R, unit t, the number of points in front)."""
+    n, R, t, _ = cv2.recoverPose(E, np.ascontiguousarray(uv1, dtype=np.float64),
+                                 np.ascontiguousarray(uv2, dtype=np.float64), K.astype(np.float64))
+    return R, t.ravel() / max(float(np.linalg.norm(t)), 1e-12), int(n)
 
 
 def trpe(K: np.ndarray, X_kf: np.ndarray, uv_kf3: np.ndarray, uv_cur3: np.ndarray, uv_kf_all: np.ndarray,
