@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import logging
 import pkgutil
-import tomllib
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python < 3.11: the same parser, backported
+    import tomli as tomllib
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path

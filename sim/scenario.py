@@ -8,7 +8,10 @@ and overrides its tables key by key; lists (furniture, objects) are replaced who
 from __future__ import annotations
 
 import re
-import tomllib
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python < 3.11: the same parser, backported
+    import tomli as tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 

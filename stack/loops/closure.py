@@ -381,15 +381,29 @@ def verify(points_query: np.ndarray, points_cand: np.ndarray, T_init: np.ndarray
 # ---------------------------------------------------------------------------------------------
 # pose graph
 
+GTSAM_MISSING = ("loop closure needs GTSAM, an optional dependency: pip install 'dopeslam-testbed[loops]' "
+                 "(or pip install gtsam)")
+
+
+def require_gtsam():
+    """The ``gtsam`` module, or a ModuleNotFoundError that says how to install it."""
+    try:
+        import gtsam
+    except ModuleNotFoundError as exc:
+        if exc.name != "gtsam":
+            raise
+        raise ModuleNotFoundError(GTSAM_MISSING, name="gtsam") from None
+    return gtsam
+
 
 def _pose3(T: np.ndarray):
-    import gtsam
+    gtsam = require_gtsam()
 
     return gtsam.Pose3(np.asarray(T, dtype=float))
 
 
 def _noise(sig):
-    import gtsam
+    gtsam = require_gtsam()
 
     s = np.asarray(sig, dtype=float)
     return gtsam.noiseModel.Diagonal.Sigmas(np.concatenate([s[3:], s[:3]]))  # GTSAM: rotation first
@@ -407,7 +421,7 @@ def optimise_pose_graph(T_init: np.ndarray, odom_edges: list[tuple[int, int, np.
     sigmas (6,) = (tx, ty, tz, rx, ry, rz) in metres and radians; loop edges get a Huber kernel.
     Returns the optimised poses (N, 4, 4).
     """
-    import gtsam
+    gtsam = require_gtsam()
 
     noise = _noise
     graph = gtsam.NonlinearFactorGraph()
@@ -618,7 +632,7 @@ class LoopCloser:
 
     def _update_graph(self, kf: KeyFrame, loops: list) -> None:
         """Add the key frame (and its loop edges) to the incremental solver (GTSAM's iSAM2)."""
-        import gtsam
+        gtsam = require_gtsam()
 
         t0 = time.perf_counter()
         if self._isam is None:
