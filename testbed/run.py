@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from stack.lidar_slam import LidarOdometry
-from stack.messages import CameraFrame, Detection
+from stack.messages import CameraFrame, Detection, LidarScan
 from stack.metrics import ate_rmse, ate_rmse_umeyama, rpe, write_tum
 from stack.object_store import ObjectStore
 from stack.pipeline import DopeSlam
@@ -187,6 +187,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         simulation_s = 0.0
         t_last = time.perf_counter()
         last_log = t_last
+        from testbed.progress import EpisodeWatch  # progress bar and live views (--view)
+
+        watch = EpisodeWatch(f"{ep.sc.name} seed {ep.seed}", ep.duration, truth=ep, pipe=pipe)
 
         for msg in dyn.messages():
             simulation_s += time.perf_counter() - t_last
@@ -198,14 +201,18 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
                     truths = ep.image_truth(msg)
                     flags = score_detections(dlog, dets, truths)
                     dyn.on_image(msg, dets, flags, truths)
+                    watch.image(msg, dets, flags)
                     if keep_detections:
                         all_dets.extend(zip(dets, flags))
             else:
-                pipe.on_message(msg)
+                pose = pipe.on_message(msg)
+                if isinstance(msg, LidarScan):
+                    watch.scan(msg, pose)
             if recorder is not None:
                 recorder.write(msg, truths)
             t_last = time.perf_counter()
-            if t_last - last_log > 15:
+            watch.tick(msg.stamp, images=dlog.frames, objects=len(pipe.store))
+            if t_last - last_log > 15 and not watch.shown:  # the bar says it when shown
                 last_log = t_last
                 log.info("t = %5.1f s of %.0f s: %d scans, %d images, %d map objects", msg.stamp, ep.duration,
                          len(odom), dlog.frames, len(pipe.store))
@@ -242,6 +249,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
                                                            "d_m": store.floor[1]},
         }
         dyn.report(report, store, T_world_map)
+        watch.finish(store, T_world_map, labels_summary.get("map_labels"))
         if config is not None:
             from testbed.provenance import detector_files, provenance
 

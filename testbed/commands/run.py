@@ -65,6 +65,48 @@ def check_dynamic_options(args, command: str) -> int | None:
     return None
 
 
+def add_view_options(p: argparse.ArgumentParser) -> None:
+    """``--view rerun`` and ``--view-save FILE.rrd`` (testbed/view.py, docs/live_view.md)."""
+    p.add_argument("--view", choices=["rerun"], default=None,
+                   help="watch the job live in the Rerun viewer: LiDAR scan and map, camera image with detections "
+                        "and FPR verdicts, true and estimated path, labels with their truth (needs the view extra; "
+                        "default: no live view)")
+    p.add_argument("--view-save", default=None, metavar="FILE.rrd",
+                   help="write the live view to a Rerun recording file (open it with `rerun FILE.rrd`; "
+                        "default: none)")
+
+
+def open_view(args, command: str):
+    """(the view --view/--view-save asked for or None, exit status 2 when it cannot start, else None)."""
+    if getattr(args, "view", None) is None and not getattr(args, "view_save", None):
+        return None, None
+    import sys
+
+    from testbed.view import ViewError, make_view
+
+    try:
+        return make_view(args.view, args.view_save), None
+    except ViewError as e:
+        print(f"dopeslam {command}: {e}", file=sys.stderr)
+        return None, 2
+
+
+def check_loop_closure(enabled: bool, command: str) -> int | None:
+    """Exit status 2 with a one-line error naming the pip command when loop closure lacks GTSAM."""
+    if not enabled:
+        return None
+    import sys
+
+    from stack.loops.closure import require_gtsam
+
+    try:
+        require_gtsam()
+    except ModuleNotFoundError as e:
+        print(f"dopeslam {command}: {e}", file=sys.stderr)
+        return 2
+    return None
+
+
 def register(sub) -> None:
     p = sub.add_parser("run", help="the main job: a scored drive-through episode (report, labels.xlsx, map.png)")
     p.add_argument("scenario", nargs="?", default=None, help="bundled name or TOML path (default: the default scenario)")
@@ -85,6 +127,7 @@ def register(sub) -> None:
     add_dope_options(p, defaults=False, unset=CONFIG_DEFAULT)
     add_config_options(p)
     add_dynamic_options(p)
+    add_view_options(p)
     p.set_defaults(func=run)
 
     p = sub.add_parser("score", help="publish saved runs' maps again (evidence settings) and score the whole map")
@@ -116,13 +159,21 @@ def run(args) -> int:
         print(f"dopeslam run: --{e}", file=sys.stderr)  # "--detector 'x:Y': what is wrong"
         return 2
     bad = check_dynamic_options(args, "run")
+    if bad is None:
+        bad = check_loop_closure(config.loop_closure.enabled, "run")
+    if bad is not None:
+        return bad
+    view, bad = open_view(args, "run")
     if bad is not None:
         return bad
     r = config.run
+    from testbed.progress import watching
+
     try:
-        report = run_episode(r.scenario, args.out, r.seed, r.light, policy=policy, duration=r.duration,
-                             detector=detector, config=config, faults=args.faults,
-                             store=args.store, retire=args.retire)
+        with watching(view):
+            report = run_episode(r.scenario, args.out, r.seed, r.light, policy=policy, duration=r.duration,
+                                 detector=detector, config=config, faults=args.faults,
+                                 store=args.store, retire=args.retire)
     except ConfigError as e:
         return config_error("run", e)
     print_summary(report)
