@@ -48,12 +48,19 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class BagTopics:
-    """Topic overrides (None: found by the drivers' usual names, see ``testbed/bags/topics.py``)."""
+    """Topic overrides (None: found by the drivers' usual names, see ``testbed/bags/topics.py``), and
+    what the reader takes when ``/tf_static`` is missing or wrong: the base frame and the extrinsics
+    (4x4 ``T_base_lidar`` / ``T_base_camera``); ``max_bad_messages``: how many messages per topic
+    that cannot be converted are skipped (and reported) before the replay stops."""
 
     lidar: str | None = None
     rgb: str | None = None
     depth: str | None = None
     camera_info: str | None = None
+    base_frame: str | None = None
+    T_base_lidar: np.ndarray | None = None
+    T_base_camera: np.ndarray | None = None
+    max_bad_messages: int = 10
 
 
 class BagImageTruth:
@@ -198,8 +205,11 @@ def fuse_into_store(detections: list[Detection], lookup: Callable[[float], np.nd
 # --- the whole replay ---------------------------------------------------------------------------------
 
 def open_bag(path, topics: BagTopics, input_mode: str, need_camera: bool = True) -> BagReader:
+    extra = {"base_frame": topics.base_frame} if topics.base_frame else {}
     bag = BagReader(path, lidar_topic=topics.lidar, rgb_topic=topics.rgb, depth_topic=topics.depth,
-                    camera_info_topic=topics.camera_info, require_camera=need_camera).open()
+                    camera_info_topic=topics.camera_info, require_camera=need_camera,
+                    T_base_lidar=topics.T_base_lidar, T_base_camera=topics.T_base_camera,
+                    max_bad_messages=topics.max_bad_messages, **extra).open()
     if need_camera:
         have = bag.rgb_topic if input_mode == "rgb" else bag.depth_topic
         if have is None:
@@ -322,6 +332,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         }
         if bag.salvaged:
             report["salvaged"] = bag.salvaged
+        if bag.bad_messages:  # skipped, counted and named (the detection reader's are in its log)
+            report["bad_messages"] = bag.bad_message_summary()
         odometry = {"poses": int(len(stamps)), "scans": odo.scans, "path_length_m": _path_length(poses),
                     "odometry_hz": odo.odom.stats.hz}
         T_world_map = None

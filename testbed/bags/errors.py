@@ -11,6 +11,7 @@ from pathlib import Path
 
 from stack.errors import DopeSlamError
 
+
 class BagError(DopeSlamError):
     """Base class of every error about a rosbag file."""
 
@@ -26,6 +27,10 @@ class BagWriteError(BagError):
 
 class BagReadError(BagError):
     """A bag could not be opened or decoded."""
+
+
+class TooManyBadMessagesError(BagReadError):
+    """More messages of a topic could not be converted than the reader may skip."""
 
 
 class CorruptBagError(BagReadError):

@@ -43,10 +43,13 @@ from .convert import (COLOUR_ENCODINGS, DEPTH_ENCODINGS, TIME_FIELD_NAMES, Cuboi
                       normalize_frame, pose_T, time_ns, times_after_stamp, transform_T,
                       wheel_odometry_from_msg)
 from .errors import (BagError, BagReadError, CorruptBagError, MissingExtrinsicError, MissingTopicError,
+                     TooManyBadMessagesError,
                      UnsupportedEncodingError)
 from .salvage import SalvagedBag, SalvageError
 
 log = logging.getLogger(__name__)
+
+MAX_SWEEP_S = 1.0  # a scan's per-point times beyond this are garbage (a spinning LiDAR sweeps in 0.05-0.2 s)
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE = "sensor_msgs/msg/Image"
@@ -297,8 +300,14 @@ class BagReader:
                  depth_topic: str | None = None, camera_info_topic: str | None = None,
                  odom_topic: str | None = None, *, base_frame: str = T.BASE,
                  T_base_lidar: np.ndarray | None = None, T_base_camera: np.ndarray | None = None,
-                 require_camera: bool = True, pair_tolerance: float = 0.02, salvage: Salvage = "auto"):
+                 require_camera: bool = True, pair_tolerance: float = 0.02, salvage: Salvage = "auto",
+                 max_bad_messages: int = 10, max_bad_fraction: float = 0.01):
         self.path = Path(path)
+        self.max_bad_messages = int(max_bad_messages)
+        self.max_bad_fraction = float(max_bad_fraction)
+        self.bad_messages: dict[str, dict] = {}  # topic -> count, first stamps, first reason (skipped)
+        self._good: dict[str, int] = {}
+        self._first_bad: dict[str, Exception] = {}
         self._requested = dict(lidar=lidar_topic, rgb=rgb_topic, depth=depth_topic,
                                camera_info=camera_info_topic, odom=odom_topic)
         self.base_frame = base_frame
@@ -395,26 +404,34 @@ class BagReader:
         for topic, t_ns, msg in self._messages(streams):
             kind = streams[topic]
             now = t_ns * 1e-9
-            if kind == "lidar":
-                scan = self._scan(msg, t_ns)
-                out.push(scan.stamp, scan)
-            elif kind == "odom":
-                odom = wheel_odometry_from_msg(msg)
-                if odom.stamp == 0.0:
-                    odom.stamp = now
-                out.push(odom.stamp, odom)
-            elif kind == "rgb":
-                for item in pairer.add_rgb(self._stamp(msg, t_ns), self._rgb(msg)):
-                    out.push(item[0], self._camera_frame(*item))
-            else:
-                for item in pairer.add_depth(self._stamp(msg, t_ns), self._depth(msg)):
-                    out.push(item[0], self._camera_frame(*item))
+            try:
+                if kind == "lidar":
+                    scan = self._scan(msg, t_ns)
+                    out.push(scan.stamp, scan)
+                elif kind == "odom":
+                    odom = wheel_odometry_from_msg(msg)
+                    if odom.stamp == 0.0:
+                        odom.stamp = now
+                    out.push(odom.stamp, odom)
+                elif kind == "rgb":
+                    for item in pairer.add_rgb(self._stamp(msg, t_ns), self._rgb(msg)):
+                        out.push(item[0], self._camera_frame(*item))
+                else:
+                    for item in pairer.add_depth(self._stamp(msg, t_ns), self._depth(msg)):
+                        out.push(item[0], self._camera_frame(*item))
+            except (UnsupportedEncodingError, ValueError) as exc:
+                self._skip(topic, now, exc)  # one bad message is skipped, counted and named
+                continue
+            self._good[topic] = self._good.get(topic, 0) + 1
             for item in pairer.ready(now):
                 out.push(item[0], self._camera_frame(*item))
             yield from out.release(min(pairer.oldest_pending(), now - 0.5))
         for item in pairer.ready(now, final=True):
             out.push(item[0], self._camera_frame(*item))
         yield from out.release(float("inf"))
+        for topic, exc in self._first_bad.items():
+            if not self._good.get(topic):  # every message of the topic was bad: nothing usable, say why
+                raise exc
         self.pairing_stats = dict(pairer.stats)
 
     def scans(self) -> Iterator[LidarScan]:
@@ -648,6 +665,10 @@ class BagReader:
             t0 = float(times.min())
             stamp += t0
             times = times - t0
+        if times.size and not (np.all(np.isfinite(times)) and float(times.max()) <= MAX_SWEEP_S):
+            raise UnsupportedEncodingError(self.path, topic, f"point field {time_name!r}: per-point times span "
+                                           f"{float(np.nanmax(times)) if np.isfinite(times).any() else 'nan'} s",
+                                           f"a sweep of at most {MAX_SWEEP_S} s")
         ring = arrays["ring"][valid].astype(np.uint16) if "ring" in arrays else None
         intensity = arrays["intensity"][valid].astype(np.float32) if "intensity" in arrays else None
         scan = LidarScan(stamp=stamp, points=points[valid], times_s=times, ring=ring, intensity=intensity,
@@ -700,6 +721,28 @@ class BagReader:
         if self.groundtruth is not None and self.T_base_camera is not None:
             frame.T_world_camera = self.groundtruth.T_world_base_at(stamp) @ self.T_base_camera
         return frame
+
+    # --- bad messages ---
+    def _skip(self, topic: str, t: float, exc: Exception) -> None:
+        """Count a message that cannot be converted; beyond ``max_bad_messages`` (or the fraction
+        ``max_bad_fraction`` of a topic's messages, whichever is larger) stop with InputDataError."""
+        text = exc.message if isinstance(exc, BagError) else f"{type(exc).__name__}: {exc}"
+        entry = self.bad_messages.setdefault(topic, {"count": 0, "first_stamps_s": [], "reason": text})
+        entry["count"] += 1
+        self._first_bad.setdefault(topic, exc)
+        if len(entry["first_stamps_s"]) < 5:
+            entry["first_stamps_s"].append(round(t, 9))
+        log.warning("%s: skipped a message on %s at %.3f s (%s)", self.path, topic, t, text.splitlines()[0])
+        limit = max(self.max_bad_messages, int(self.max_bad_fraction * self.message_counts.get(topic, 0)))
+        if entry["count"] > limit:
+            if not self._good.get(topic):  # not one good message: the topic's layout is wrong, say so
+                raise exc
+            raise TooManyBadMessagesError(self.path, f"{entry['count']} bad messages on {topic} (more than {limit}; "
+                                 f"the first: {text.splitlines()[0]}); raise --max-bad-messages to skip more")
+
+    def bad_message_summary(self) -> dict[str, dict]:
+        """Per topic: how many messages were skipped, the first stamps and the first reason."""
+        return {t: dict(v) for t, v in sorted(self.bad_messages.items())}
 
     # --- message access ---
     def _messages(self, topics: Collection[str]) -> Iterator[tuple[str, int, Any]]:

@@ -37,6 +37,14 @@ def register(sub) -> None:
     p.add_argument("--results-bag", default=None, help="where the results bag goes (default OUT/results_bag); "
                    "an existing path is refused unless --force, the input bag always")
     p.add_argument("--force", action="store_true", help="replace an existing --results-bag")
+    p.add_argument("--T-base-lidar", dest="T_base_lidar", default=None, metavar="X,Y,Z,ROLL,PITCH,YAW",
+                   help="the LiDAR's pose on the robot (m, deg) when /tf_static lacks or misstates it")
+    p.add_argument("--T-base-camera", dest="T_base_camera", default=None, metavar="X,Y,Z,ROLL,PITCH,YAW",
+                   help="the colour optical frame's pose on the robot (m, deg), as --T-base-lidar")
+    p.add_argument("--base-frame", default=None, help="the robot's frame in /tf_static (default base_link)")
+    p.add_argument("--max-bad-messages", type=int, default=10,
+                   help="messages per topic that cannot be converted which are skipped and reported (or 1 %% of "
+                        "the topic's, if more) before the replay stops")
     p.add_argument("--loop-closure", action="store_true",
                    help="close loops (key frames from the colour images + LiDAR) and place labels on the corrected trajectory")
     p.add_argument("--vocabulary", default=None, help="place-recognition vocabulary .npz (default: the bundled one)")
@@ -65,6 +73,31 @@ def record(args) -> int:
     return 0
 
 
+def parse_pose(text: str | None, option: str):
+    """``X,Y,Z,ROLL,PITCH,YAW`` (metres, degrees; rotations about the fixed x, y, z axes) as a 4x4
+    transform; else a one-line DopeSlamError naming the option."""
+    if text is None:
+        return None
+    import math
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from stack.errors import DopeSlamError
+
+    try:
+        v = [float(x) for x in text.replace(" ", ",").split(",") if x]
+    except ValueError:
+        v = []
+    if len(v) != 6 or not all(math.isfinite(x) for x in v) or max(abs(x) for x in v[:3]) > 10:
+        raise DopeSlamError(f"{option} {text!r}: expected X,Y,Z,ROLL,PITCH,YAW (six finite numbers: metres "
+                            "within 10 m, degrees)")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", v[3:], degrees=True).as_matrix()
+    T[:3, 3] = v[:3]
+    return T
+
+
 def replay(args) -> int:
     from stack.object_store import POLICIES
     from testbed.replay import BagTopics, print_replay_summary, replay_bag
@@ -77,7 +110,12 @@ def replay(args) -> int:
         from testbed.io import check_new_output
 
         check_new_output(args.results_bag, "--results-bag", force=args.force, inputs=[args.bag])
-    topics = BagTopics(args.lidar_topic, args.rgb_topic, args.depth_topic, args.camera_info_topic)
+    if args.max_bad_messages < 0:
+        raise SystemExit(f"dopeslam replay: --max-bad-messages: expected an integer >= 0, got {args.max_bad_messages}")
+    topics = BagTopics(args.lidar_topic, args.rgb_topic, args.depth_topic, args.camera_info_topic,
+                       base_frame=args.base_frame, T_base_lidar=parse_pose(args.T_base_lidar, "--T-base-lidar"),
+                       T_base_camera=parse_pose(args.T_base_camera, "--T-base-camera"),
+                       max_bad_messages=args.max_bad_messages)
     report = replay_bag(args.bag, args.out, input_mode=args.input_mode, stages=args.stages, fpr=args.fpr,
                         weights=args.weights, policy=args.policy, topics=topics, dope_every=args.dope_every,
                         parallel=not args.sequential, results_bag=args.results_bag,

@@ -1,0 +1,55 @@
+"""Replay that degrades, not dies: a bad message is skipped, counted and named; too many stop
+with a clear error; a topic with no good message at all says why."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from testbed.bags import BagReader
+from testbed.bags.errors import TooManyBadMessagesError, UnsupportedEncodingError
+
+from test_rosbag_io import write_custom_lidar  # the bag writer helpers of the rosbag tests
+
+N = 200
+
+
+def _fields(bad_stamps):
+    xyz = np.random.default_rng(0).normal(size=(N, 3)).astype(np.float32) + 2.0
+
+    def fields_of(stamp):
+        t = np.linspace(0, 0.099, N).astype(np.float32)
+        if round(stamp, 3) in bad_stamps:
+            t = np.linspace(0, 1e10, N).astype(np.float32)  # garbage per-point time: fits no unit
+        return {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "time": t}
+
+    return fields_of
+
+
+def test_one_garbage_scan_is_skipped_counted_and_named(tmp_path):
+    path = tmp_path / "one_bad.bag"
+    stamps = [100.0 + 0.1 * i for i in range(8)]
+    write_custom_lidar(path, stamps, _fields({100.3}))
+    with BagReader(path) as bag:
+        scans = list(bag.scans())
+        summary = bag.bad_message_summary()
+    assert len(scans) == 7 and 100.3 not in [round(s.stamp, 3) for s in scans]
+    (topic, entry), = summary.items()
+    assert entry["count"] == 1 and entry["first_stamps_s"] == [pytest.approx(100.3)]
+    assert "'time'" in entry["reason"]
+
+
+def test_too_many_bad_messages_stop_with_a_clear_error(tmp_path):
+    path = tmp_path / "many_bad.bag"
+    stamps = [100.0 + 0.1 * i for i in range(8)]
+    write_custom_lidar(path, stamps, _fields({round(s, 3) for s in stamps[2:]}))
+    with BagReader(path, max_bad_messages=3) as bag, pytest.raises(TooManyBadMessagesError,
+                                                                   match="4 bad messages on .*max-bad-messages"):
+        list(bag.scans())
+
+
+def test_a_topic_with_no_good_message_says_why(tmp_path):
+    path = tmp_path / "all_bad.bag"
+    stamps = [100.0, 100.1]
+    write_custom_lidar(path, stamps, _fields({100.0, 100.1}))
+    with BagReader(path) as bag, pytest.raises(UnsupportedEncodingError, match="'time'"):
+        list(bag.scans())
