@@ -96,7 +96,7 @@ def test_relative_pose_up_to_scale_from_all_features_of_a_node():
     """The heading fix: rotation of the current camera against a node's view from 2D-2D matches
     (no 3D points needed), on synthetic correspondences with a known 6 deg turn."""
     from stack.topomap.mono_pose import Features
-    from stack.topomap.topological_map import relative_pose_up_to_scale
+    from stack.topomap.localisation import relative_pose_up_to_scale
 
     rng = np.random.default_rng(3)
     X = np.c_[rng.uniform(-4, 4, 200), rng.uniform(-1.5, 1.5, 200), rng.uniform(3, 12, 200)]  # node camera
@@ -133,7 +133,7 @@ def test_points_from_an_image_pair_then_a_metric_pose_against_them():
     baseline given, as the wheel odometry gives it on a straight), then ORPE of a third view against
     them recovers its metric pose."""
     from stack.topomap.mono_pose import Features
-    from stack.topomap.topological_map import points_from_pair, pose_against_points
+    from stack.topomap.localisation import points_from_pair, pose_against_points
 
     rng = np.random.default_rng(7)
     X = np.c_[rng.uniform(-4, 4, 300), rng.uniform(-1.5, 1.5, 300), rng.uniform(3, 10, 300)]  # reference camera

@@ -34,8 +34,8 @@ import cv2
 import numpy as np
 
 from stack.topomap.mono_pose import MonoConfig, detect_features
-from stack.topomap.topological_map import (REVISIT, TopoMap, localise, points_from_pair, pose_against_points,
-                                           relative_pose_up_to_scale)
+from stack.topomap.localisation import localise, points_from_pair, pose_against_points, relative_pose_up_to_scale
+from stack.topomap.topological_map import REVISIT, TopoMap
 from stack.transforms import inv, wrap_angle, yaw_of
 
 MIN_FIX_INLIERS = 12  # ORPE inliers (reprojection < 2 px) for a full fix against a node

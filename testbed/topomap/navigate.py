@@ -5,7 +5,7 @@ section 4.4) in the simulator, as teach and repeat over the topological map. The
 1. The map (the teach run): the scenario's scripted drive (its own seed, lit); its camera stream
    (cached) goes through ``stack.topomap.topological_map.TopoMapper`` (ORPE poses, vocabulary-tree words,
    colour-verified HOG attributes), then places seen on two passes are joined by ``revisit``
-   edges (``stack.topomap.topological_map.add_revisit_edges``). The map is cached by scenario and settings. The
+   edges (``stack.topomap.localisation.add_revisit_edges``). The map is cached by scenario and settings. The
    mapping run's dead reckoning is kept beside it (``teach_odometry``: the wheels' travel, the
    gyro's heading).
 2. The navigation run (the repeat): a fresh episode of the same scenario whose start pose is
@@ -38,7 +38,8 @@ import numpy as np
 from stack.dead_reckoning import DeadReckoning
 from stack.topomap.mono_pose import MonoConfig
 from stack.topomap.navigation import Navigator, RouteImage
-from stack.topomap.topological_map import MapperConfig, TopoMap, TopoMapper, add_revisit_edges
+from stack.topomap.localisation import add_revisit_edges
+from stack.topomap.topological_map import MapperConfig, TopoMap, TopoMapper
 from stack.transforms import inv, wrap_angle, yaw_of
 from testbed.topomap import InputError
 from testbed.topomap.stream import CameraStream, cache_root, camera_stream

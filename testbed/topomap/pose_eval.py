@@ -28,7 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stack.topomap.mono_pose import METHODS, Features, MonoConfig, detect_features, run_sequence
+from stack.topomap.mono_pose import METHODS, Features, MonoConfig, detect_features
+from stack.topomap.mono_vo import run_sequence
 from testbed.topomap import InputError
 from testbed.topomap.stream import CameraStream, cache_root, camera_stream
 
