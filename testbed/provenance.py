@@ -6,7 +6,10 @@ from __future__ import annotations
 import hashlib
 import subprocess
 import sys
-import tomllib
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python < 3.11: the same parser, backported
+    import tomli as tomllib
 from importlib import metadata
 from pathlib import Path
 

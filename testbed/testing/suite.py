@@ -6,7 +6,10 @@ Everything is checked before anything runs: errors name the file and the key.
 """
 from __future__ import annotations
 
-import tomllib
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python < 3.11: the same parser, backported
+    import tomli as tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
