@@ -257,6 +257,17 @@ def _store_ray_result(res: dict, cell_dir: Path) -> None:
 
 # ------------------------------------------------------------------------------------------ driver
 
+def prepare_shared(cells) -> None:
+    """Build once, on the driver, what many cells would otherwise each build: the place-recognition
+    vocabulary of cells with loop closure and no vocabulary of their own. It lands in the cache
+    (``$DOPESLAM_CACHE``), which every cell on this machine reads; a cluster node without it builds the
+    same tree from the same seeded inputs once, into its own cache."""
+    if any(c.loop_closure.enabled and not c.loop_closure.vocabulary for c in map(cell_config, cells)):
+        from testbed.vocabulary import build_vocabulary
+
+        build_vocabulary()
+
+
 def run_cells(cells, out_dir, jobs: int = 1, ray: bool = False, ray_address: str | None = None,
               progress: bool = True, collect_files: bool = False,
               on_result: Callable[[int, dict], None] | None = None) -> list[dict]:
@@ -280,6 +291,7 @@ def run_cells(cells, out_dir, jobs: int = 1, ray: bool = False, ray_address: str
                 on_result(i, results[i])
         else:
             todo.append(i)
+    prepare_shared([cells[i] for i in todo])
     bar = _progress(len(cells), len(cells) - len(todo), progress)
 
     def done(i: int, status: str, error: str | None, tries: int) -> None:

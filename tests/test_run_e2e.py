@@ -125,16 +125,19 @@ def test_darkness_levels_option_is_validated():
 
 def test_darkness_sweep_takes_one_input_when_given(monkeypatch, tmp_path):
     import testbed.experiments.darkness as darkness
+    import testbed.matrix as matrix
 
     seen = []
+    report = {"labels_summary": {"labelled": 0, "objects": 6, "labels_in_map": 0, "false_labels": 0, "missing": 6,
+                                 "map_precision": None, "mean_error_m": None},
+              "detection": {"precision": None, "recall": None}, "scenario": "x", "seed": 0}
 
-    def fake_episode(scenario, out_dir, seed, light, input_mode, *a, **k):
-        seen.append((input_mode, light))
-        return {"labels_summary": {"labelled": 0, "objects": 6, "labels_in_map": 0, "false_labels": 0, "missing": 6,
-                                   "map_precision": None, "mean_error_m": None},
-                "detection": {"precision": None, "recall": None}, "scenario": "x", "seed": 0}
+    def fake_cells(cells, out_dir, jobs=1, **k):  # the sweep's cells, not their episodes
+        seen.extend((c.options["input"], c.options["light"]) for c in cells)
+        return [{"status": "ok", "report": report, "out_dir": str(tmp_path / "cells" / str(i))}
+                for i, _ in enumerate(cells)]
 
-    monkeypatch.setattr(darkness, "run_episode", fake_episode)
+    monkeypatch.setattr(matrix, "run_cells", fake_cells)
     monkeypatch.setattr(darkness, "plot", lambda *a, **k: None)
     darkness.run(tmp_path, levels=(1.0, 0.0), input_mode="rgb")
     assert seen == [("rgb", 1.0), ("rgb", 0.0)]

@@ -30,6 +30,7 @@ def register(sub) -> None:
                    help="darkness: comma-separated light levels (default 1,0.5,0.25,0.1,0)")
     p.add_argument("--faults", type=_fault_sweep, default=None, metavar="NAME=R,R,...;NAME=...",
                    help="faults: the faults and rates to sweep (default: every fault, three rates; docs/faults.md)")
+    p.add_argument("--jobs", type=int, default=1, help="darkness: episodes at once (local processes)")
     add_dope_options(p, defaults=False)
     p.set_defaults(func=run)
 
@@ -62,7 +63,7 @@ def run(args) -> int:
     out = args.out or f"out/{args.name}"
     opts = {"scenario": args.scenario, "seed": args.seed, "duration": args.duration, "runs": args.runs,
             "seconds": args.seconds, "frames": args.frames, "stages": args.stages, "input_mode": args.input_mode,
-            "weights": args.weights, "levels": args.levels, "faults": args.faults}
+            "weights": args.weights, "levels": args.levels, "faults": args.faults, "jobs": args.jobs}
     import inspect
 
     accepted = inspect.signature(module.run).parameters

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from testbed.run import run_episode
 from testbed.io import write_json
 
 log = logging.getLogger(__name__)
@@ -15,23 +14,31 @@ LEVELS = (1.0, 0.5, 0.25, 0.1, 0.0)
 
 
 def run(out_dir, scenario=None, seed=None, levels=LEVELS, inputs=("rgb", "depth"), stages=6, duration=None,
-        policy="robust-mean", input_mode: str | None = None) -> dict:
-    """``input_mode`` (the CLI's ``--input``): sweep that input only."""
+        policy="robust-mean", input_mode: str | None = None, jobs: int = 1) -> dict:
+    """``input_mode`` (the CLI's ``--input``): sweep that input only. The episodes run through the
+    matrix runner (``jobs`` at once, each in ``OUT/cells/<key>/``; a rerun skips finished ones)."""
+    from sim.scenario import DEFAULT_SCENARIO, load_scenario
+    from testbed.matrix import Cell, run_cells
+
     if input_mode is not None:
         inputs = (input_mode,)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    sc = load_scenario(scenario)
+    seed = sc.seed if seed is None else seed
+    opts = {"stages": stages, "policy": policy, **({"duration": duration} if duration is not None else {})}
+    cells = [Cell(scenario or DEFAULT_SCENARIO, seed, {**opts, "input": m, "light": light}) for m in inputs for light in levels]
     rows = []
-    for input_mode in inputs:
-        for light in levels:
-            log.info("darkness sweep: %s input at light %.2f", input_mode, light)
-            rep = run_episode(scenario, out / f"{input_mode}_light{light:.2f}", seed, light, input_mode, stages, True,
-                              policy, duration)
-            s = rep["labels_summary"]
-            rows.append({"input": input_mode, "light": light, "labelled": s["labelled"], "objects": s["objects"],
-                         "labels_in_map": s["labels_in_map"], "false_labels": s["false_labels"],
-                         "map_precision": s["map_precision"], "mean_error_m": s["mean_error_m"],
-                         "precision": rep["detection"]["precision"], "recall": rep["detection"]["recall"]})
+    for cell, res in zip(cells, run_cells(cells, out, jobs=jobs)):
+        if res["status"] != "ok":
+            raise RuntimeError(f"darkness sweep: {cell.label()}: {res['error']}")
+        rep = res["report"]
+        s = rep["labels_summary"]
+        rows.append({"input": cell.options["input"], "light": cell.options["light"], "labelled": s["labelled"],
+                     "objects": s["objects"], "labels_in_map": s["labels_in_map"], "false_labels": s["false_labels"],
+                     "map_precision": s["map_precision"], "mean_error_m": s["mean_error_m"],
+                     "precision": rep["detection"]["precision"], "recall": rep["detection"]["recall"],
+                     "run": str(Path(res["out_dir"]).relative_to(out))})
     result = {"scenario": rep["scenario"], "seed": rep["seed"], "stages": stages, "policy": policy, "rows": rows}
     write_json(out / "darkness.json", result)
     plot(result, out / "darkness.png")
