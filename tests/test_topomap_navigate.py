@@ -106,3 +106,22 @@ def test_pose_tracker_gates_outlying_fixes():
     assert not tr.correct(far, np.eye(4), 1.0)  # 2 m off one second after a fix
     assert tr.correct(far, np.eye(4), 30.0)  # odometry may have drifted that much in 30 s
     np.testing.assert_allclose(tr.predict(np.eye(4)), far)
+
+
+def test_topomap_commands_parse_and_bad_input_is_one_line_exit_2(tmp_path, capsys):
+    from testbed.cli import build_parser, main
+
+    p = build_parser()
+    a = p.parse_args(["navigate-batch", "--scenarios", "shelf_corridor", "--seeds", "2-4"])
+    assert a.func.__name__ == "_navigate_batch" and a.seeds == "2-4"
+    a = p.parse_args(["pose-eval", "--runs", "3"])
+    assert a.func.__name__ == "_pose_eval" and a.runs == 3
+    a = p.parse_args(["hog-detector", "eval", "--no-streams"])
+    assert a.hog_command == "eval" and a.no_streams
+    assert main(["navigate-batch", "--seeds", "x-y"]) == 2
+    assert main(["hog-detector", "table", str(tmp_path / "missing.json")]) == 2
+    (tmp_path / "bad.json").write_text("{")
+    assert main(["pose-eval", "--table", str(tmp_path / "bad.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and err[0].startswith("dopeslam navigate-batch: --seeds")
+    assert "missing.json" in err[1] and "bad.json" in err[2]
