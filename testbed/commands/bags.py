@@ -3,7 +3,8 @@ and ``dopeslam replay BAG --out DIR [--lidar-topic T] [--rgb-topic T] [--depth-t
 [--input rgb|depth] [--fpr/--no-fpr] [--stages 1-6] [--weights W] [--policy P]``."""
 from __future__ import annotations
 
-from testbed.commands.run import add_dope_options
+from testbed.commands.options import REPLAY_APPLIES, add_config_options, config_error, config_from_args
+from testbed.commands.run import CONFIG_DEFAULT, add_dope_options
 
 
 def register(sub) -> None:
@@ -30,8 +31,9 @@ def register(sub) -> None:
     p.add_argument("--rgb-topic", default=None, help="colour Image/CompressedImage topic")
     p.add_argument("--depth-topic", default=None, help="depth Image topic, aligned to colour (16UC1 mm or 32FC1 m)")
     p.add_argument("--camera-info-topic", default=None, help="CameraInfo of the colour stream")
-    p.add_argument("--policy", default="robust-mean", help="labelling policy: last, last-fpr, best-score, robust-mean, ...")
-    p.add_argument("--dope-every", type=int, default=1, help="run DOPE on every N-th image")
+    p.add_argument("--policy", default=None,
+                   help="labelling policy: last, last-fpr, best-score, robust-mean (default), ..., or MODULE:FUNCTION")
+    p.add_argument("--dope-every", type=int, default=None, help="run DOPE on every N-th image (default 1)")
     p.add_argument("--sequential", action="store_true",
                    help="run the odometry and DOPE passes one after the other (default: at the same time)")
     p.add_argument("--results-bag", default=None, help="where the results bag goes (default OUT/results_bag); "
@@ -48,7 +50,8 @@ def register(sub) -> None:
     p.add_argument("--loop-closure", action="store_true",
                    help="close loops (key frames from the colour images + LiDAR) and place labels on the corrected trajectory")
     p.add_argument("--vocabulary", default=None, help="place-recognition vocabulary .npz (default: the bundled one)")
-    add_dope_options(p)
+    add_dope_options(p, defaults=False, unset=CONFIG_DEFAULT)
+    add_config_options(p)
     p.add_argument("--json", action="store_true", help="print the report (report.json's content) as JSON on stdout (logs on stderr)")
     p.set_defaults(func=replay)
 
@@ -99,13 +102,28 @@ def parse_pose(text: str | None, option: str):
 
 
 def replay(args) -> int:
-    from stack.object_store import POLICIES
-    from testbed.replay import BagTopics, print_replay_summary, replay_bag
+    import sys
 
-    if args.policy not in POLICIES:
-        raise SystemExit(f"--policy: expected one of {sorted(POLICIES)}, got {args.policy!r}")
-    if args.dope_every < 1:
-        raise SystemExit(f"--dope-every: expected an integer >= 1, got {args.dope_every}")
+    from stack.config import ConfigError
+    from stack.interfaces import ImportPathError, load_detector, resolve_policy
+    from testbed.commands.options import finish_outputs, refuse_unapplied
+    from testbed.replay import BagTopics, print_replay_summary, replay_bag
+    from testbed.run import make_detector
+
+    try:
+        config = config_from_args(args)  # [run] is the simulator's: read, not used here
+        refuse_unapplied(config, REPLAY_APPLIES, "replay")
+        if config.components.odometry:
+            raise ConfigError("key 'components.odometry': dopeslam replay runs KISS-ICP only")
+    except ConfigError as e:
+        return config_error("replay", e)
+    d, c = config.detector, config.components
+    try:
+        policy = resolve_policy(config.store.policy)
+        detector = load_detector(c.detector) if c.detector else make_detector(d.input, d.stages, d.fpr, config=d)
+    except ImportPathError as e:
+        print(f"dopeslam replay: --{e}", file=sys.stderr)
+        return 2
     if args.results_bag is not None:
         from testbed.io import check_new_output
 
@@ -116,13 +134,15 @@ def replay(args) -> int:
                        base_frame=args.base_frame, T_base_lidar=parse_pose(args.T_base_lidar, "--T-base-lidar"),
                        T_base_camera=parse_pose(args.T_base_camera, "--T-base-camera"),
                        max_bad_messages=args.max_bad_messages)
-    report = replay_bag(args.bag, args.out, input_mode=args.input_mode, stages=args.stages, fpr=args.fpr,
-                        weights=args.weights, policy=args.policy, topics=topics, dope_every=args.dope_every,
+    report = replay_bag(args.bag, args.out, input_mode=d.input, stages=d.stages, fpr=d.fpr,
+                        weights=d.weights, policy=policy, topics=topics, dope_every=d.every,
                         parallel=not args.sequential, results_bag=args.results_bag,
-                        loop_closure=args.loop_closure, vocabulary=args.vocabulary)
+                        loop_closure=config.loop_closure.enabled, vocabulary=config.loop_closure.vocabulary,
+                        detector=detector)
+    finish_outputs(config.stack(), args.out, report, detector, seed=report.get("seed"))
     args.json_result = report  # --json (testbed/cli.py)
     print_replay_summary(report)
-    print(f"wrote {args.out}/report.json, labels.xlsx, labels.json, map.png, estimate_tum.txt"
+    print(f"wrote {args.out}/report.json, config.toml, labels.xlsx, labels.json, map.png, estimate_tum.txt"
           + (", groundtruth_tum.txt" if report["ground_truth"]["trajectory"] else "")
           + f", {args.results_bag or args.out + '/results_bag'}")
     return 0
