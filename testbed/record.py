@@ -116,6 +116,8 @@ class EpisodeRecorder:
         self.writer = writer
         self.ep = ep
         self.image_truth = image_truth
+        if writer.format == "ros2" and writer.storage == "sqlite3":
+            background = False  # an SQLite connection may be used only by the thread that opened it
         self.seconds = 0.0
         self.cpu_seconds = 0.0
         self._gt_written = 0

@@ -352,11 +352,20 @@ def depth_to_mm(depth_m: np.ndarray) -> np.ndarray:
     return out
 
 
+class UnknownEncoding(ValueError, KeyError):
+    """An image encoding this converter has no layout for."""
+
+    __str__ = ValueError.__str__
+
+
 def image_array(msg: Any) -> np.ndarray:
     """Pixels of a sensor_msgs/Image as (H, W) or (H, W, C), row padding removed.
 
-    Raises KeyError for an encoding outside ``_IMAGE_LAYOUTS`` and ValueError for short data.
+    Raises ``UnknownEncoding`` (a ValueError and a KeyError) for an encoding outside
+    ``_IMAGE_LAYOUTS`` and ValueError for short data.
     """
+    if msg.encoding not in _IMAGE_LAYOUTS:
+        raise UnknownEncoding(f"image encoding {msg.encoding!r}; expected one of {sorted(_IMAGE_LAYOUTS)}")
     dtype, channels = _IMAGE_LAYOUTS[msg.encoding]
     dtype = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
