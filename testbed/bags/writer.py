@@ -36,6 +36,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 
+from stack.io import clean_stale
 from stack.messages import CameraFrame, LidarScan, ObjectTruth, WheelOdometry
 
 from . import topics as T
@@ -100,7 +101,8 @@ class BagWriter:
     def open(self) -> "BagWriter":
         if self._writer is not None or self._closed:
             raise BagWriteError(self.path, "writer was opened already")
-        self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=self.path.parent))
+        clean_stale(self.path)  # what a killed recording left beside the bag
+        self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-{os.getpid()}-", dir=self.path.parent))
         target = self._tmpdir / self.path.name
         try:
             if self.format == "ros1":

@@ -1,0 +1,69 @@
+"""``kill -9`` at a random moment: no output stands under its final name unless it is complete, and
+what the killed process left beside it is cleaned when the next one starts."""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from stack.io import clean_stale, output_dir, staging_entries
+
+REPO = Path(__file__).resolve().parents[1]
+WRITER = """
+import sys, time
+from pathlib import Path
+from stack.io import output_dir
+with output_dir(Path(sys.argv[1])) as d:
+    for i in range(200):
+        (d / f"part_{i:03d}.bin").write_bytes(b"x" * 4096)
+        time.sleep(0.002)
+    (d / "report.json").write_text("{}")
+"""
+
+
+def _kill_at(cmd: list[str], seconds: float, env=None) -> int:
+    p = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    time.sleep(seconds)
+    if p.poll() is None:
+        os.kill(p.pid, signal.SIGKILL)
+    return p.wait()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_output_folder_killed_at_random_moments(tmp_path, seed):
+    out = tmp_path / "out"
+    delay = random.Random(seed).uniform(0.3, 2.0)
+    rc = _kill_at([sys.executable, "-c", WRITER, str(out)], delay)
+    if out.exists():  # only ever complete
+        assert (out / "report.json").exists() and len(list(out.glob("part_*.bin"))) == 200
+    else:
+        assert rc == -signal.SIGKILL
+    clean_stale(out)
+    assert staging_entries(out) == []
+    with output_dir(out) as d:  # the next run starts clean and finishes
+        (d / "report.json").write_text("{}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+@pytest.mark.slow
+def test_record_killed_leaves_no_bag_and_the_next_one_cleans_up(tmp_path):
+    bag = tmp_path / "rec"
+    env = {**os.environ, "DOPESLAM_TORCH_THREADS": "1"}
+    cmd = [sys.executable, "-m", "testbed.cli", "record", "--bag", str(bag), "--duration", "4", "--seed", "2"]
+    _kill_at(cmd, random.Random(7).uniform(6.0, 12.0), env)
+    assert not bag.exists() or (bag / "metadata.yaml").exists()  # never a half-written bag under its name
+    leftovers = [p for p in tmp_path.iterdir() if p.name.startswith(".rec.partial-")]
+    from testbed.bags import BagWriter
+
+    with BagWriter(tmp_path / "rec2", overwrite=True) as w:  # a bag beside it: cleans only its own name's
+        w.write_metadata(0.0, {"x": 1})
+    with BagWriter(bag, overwrite=True) as w:
+        w.write_metadata(0.0, {"x": 1})
+    assert not any(p.exists() for p in leftovers)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec", "rec2"]
