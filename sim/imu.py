@@ -1,5 +1,6 @@
 """The yaw-rate gyro of the robot's IMU (the Jackal's, or the D435i's Bosch BMI055: noise density
-0.014 deg/s/sqrt(Hz), zero-rate offset up to +-1 deg/s before calibration).
+0.014 deg/s/sqrt(Hz), zero-rate offset up to +-1 deg/s before calibration; the figures are
+``sim/data/hardware.toml``'s ``[gyro]``, typed in ``sim.sensors``).
 
 The gyro measures the base's true yaw rate (the simulator's) plus a bias and white noise. The bias
 is what a stationary calibration at power-up leaves (the robot stands before each episode): the
@@ -13,15 +14,19 @@ import math
 
 import numpy as np
 
-NOISE_DENSITY = math.radians(0.014)  # rad/s/sqrt(Hz)
-ZERO_RATE_OFFSET = math.radians(1.0)  # rad/s, 1-sigma before calibration
-BIAS_WALK = math.radians(0.0003)  # rad/s/sqrt(s): about 0.003 deg/s after 100 s
+from sim.sensors import hardware_spec
+
+_SPEC = hardware_spec().gyro  # sim/data/hardware.toml [gyro]
+NOISE_DENSITY = math.radians(_SPEC.noise_density_deg_s_rthz)  # rad/s/sqrt(Hz)
+ZERO_RATE_OFFSET = math.radians(_SPEC.zero_rate_offset_deg_s)  # rad/s, 1-sigma before calibration
+BIAS_WALK = math.radians(_SPEC.bias_walk_deg_s_rts)  # rad/s/sqrt(s)
 
 
 class Gyro:
     """z-axis gyro readings (rad/s) from the true yaw rate, seeded."""
 
-    def __init__(self, rng: np.random.Generator, calibration_s: float = 1.0):
+    def __init__(self, rng: np.random.Generator, calibration_s: float | None = None):
+        calibration_s = _SPEC.calibration_s if calibration_s is None else calibration_s
         if calibration_s <= 0:
             raise ValueError(f"calibration_s: expected a positive duration, got {calibration_s}")
         self.rng = rng
