@@ -7,7 +7,12 @@ satisfy them: :class:`stack.lidar_slam.LidarOdometry` is an :class:`Odometry`,
 harness's loop closing (``testbed/loop_closing.py``) is a :class:`LoopCloser`.
 
 Other people's components are named by import path, ``MODULE:ATTRIBUTE`` (``my_pkg.dets:MyDetector``),
-and loaded with :func:`load_import_path`.
+or by the name an installed package registers for them as an entry point (groups
+``dopeslam.detectors``, ``dopeslam.odometry``, ``dopeslam.policies``; in that package's
+``pyproject.toml``: ``[project.entry-points."dopeslam.detectors"] mine = "my_pkg.dets:MyDetector"``),
+and loaded with :func:`load_detector`, :func:`load_odometry` and :func:`resolve_policy`. The bundled
+odometries have short names too: ``kiss-icp`` (the default, LiDAR) and ``wheel`` (wheel odometry
+only, :class:`stack.wheel_odometry.WheelOnlyOdometry`).
 
 Frames and units as in ``DESIGN.md``: poses are ``T_map_base`` (4x4, ``map`` = ``base_link`` at the
 first registered scan), times are float seconds.
@@ -16,6 +21,7 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Sequence
+from importlib.metadata import entry_points
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -29,10 +35,14 @@ from stack.object_store import POLICIES, Label, Observation, register
 class Odometry(Protocol):
     """Robot poses in ``map`` from LiDAR sweeps, given in time order.
 
+    Named on the command line (``--odometry MODULE:CLASS``), the class is called with one argument,
+    the LiDAR's mounting ``T_base_lidar`` (4x4, the sensor frame in ``base_link``).
+
     Optional: ``floor_plane_map() -> (n, d) | None``, the floor as a plane in ``map`` (unit normal n
     up, n.x + d = 0 on the floor); the object store's evidence uses it to reject labels below the
     floor. Optional: ``last_points_base``, the last sweep's points in ``base_link`` (N, 3), which
-    the pipeline collects into a LiDAR map.
+    the pipeline collects into a LiDAR map. Optional: ``on_wheel_odometry(msg)``, given every
+    :class:`~stack.messages.WheelOdometry` message in time order with the scans.
     """
 
     def process(self, scan: LidarScan) -> np.ndarray | None:
@@ -117,32 +127,100 @@ def load_import_path(spec: str, what: str = "component"):
     return obj
 
 
-def load_detector(spec: str) -> Detector:
-    """A detector from ``MODULE:CLASS``: the class is constructed with no arguments and must have
-    ``detect(frame)``. Raises :class:`ImportPathError` (one line) otherwise."""
-    cls = load_import_path(spec, "detector")
+ENTRY_POINT_GROUPS = {"detector": "dopeslam.detectors", "odometry": "dopeslam.odometry",
+                      "policy": "dopeslam.policies"}
+ODOMETRIES = {"kiss-icp": "stack.lidar_slam:LidarOdometry", "wheel": "stack.wheel_odometry:WheelOnlyOdometry"}
+DEFAULT_ODOMETRY = "kiss-icp"
+
+
+def entry_point_names(what: str) -> list[str]:
+    """The names installed packages register in ``what``'s entry-point group (``detector``, ...)."""
+    return sorted({ep.name for ep in entry_points(group=ENTRY_POINT_GROUPS[what])})
+
+
+def _load_named(spec: str, what: str, builtin: dict[str, str] | None = None):
+    """``MODULE:ATTRIBUTE``, a bundled short name (``builtin``) or an entry point's name -> the object."""
+    if ":" in spec:
+        return load_import_path(spec, what)
+    if builtin and spec in builtin:
+        return load_import_path(builtin[spec], what)
+    group = ENTRY_POINT_GROUPS[what]
+    found = [ep for ep in entry_points(group=group) if ep.name == spec]
+    if not found:
+        names = sorted({*(builtin or {}), *entry_point_names(what)})
+        known = f"one of {names} or " if names else ""
+        raise ImportPathError(f"{what} {spec!r}: expected {known}MODULE:ATTRIBUTE (no entry point {spec!r} "
+                              f"in group {group!r})")
+    ep = found[0]
+    try:
+        return ep.load()
+    except Exception as e:  # the package's module failed while loading: say so on one line
+        raise ImportPathError(f"{what} {spec!r}: loading entry point {ep.value!r} failed: "
+                              f"{type(e).__name__}: {e}".splitlines()[0]) from None
+
+
+def _construct(cls, spec: str, what: str, args: tuple, how: str):
     if not callable(cls):
-        raise ImportPathError(f"detector {spec!r}: {type(cls).__name__} object is not a class")
+        raise ImportPathError(f"{what} {spec!r}: {type(cls).__name__} object is not a class")
+    try:
+        return cls(*args)
+    except Exception as e:  # a user's constructor: report it on one line rather than a traceback
+        raise ImportPathError(f"{what} {spec!r}: constructing it {how} failed: "
+                              f"{type(e).__name__}: {e}".splitlines()[0]) from None
+
+
+def load_detector(spec: str) -> Detector:
+    """A detector from ``MODULE:CLASS`` or an entry point's name (group ``dopeslam.detectors``): the
+    class is constructed with no arguments and must have ``detect(frame)``. Raises
+    :class:`ImportPathError` (one line) otherwise."""
+    cls = _load_named(spec, "detector")
     if isinstance(cls, type) and not callable(getattr(cls, "detect", None)):
         raise ImportPathError(f"detector {spec!r}: class {cls.__name__} has no detect(frame) method")
-    try:
-        detector = cls()
-    except Exception as e:  # a user's constructor: report it on one line rather than a traceback
-        raise ImportPathError(f"detector {spec!r}: constructing it with no arguments failed: "
-                              f"{type(e).__name__}: {e}".splitlines()[0]) from None
+    detector = _construct(cls, spec, "detector", (), "with no arguments")
     if not isinstance(detector, Detector):
         raise ImportPathError(f"detector {spec!r}: {type(detector).__name__} has no detect(frame) method")
     return detector
 
 
+def odometry_factory(spec: str | None):
+    """The class (or callable) a bundled odometry name, ``MODULE:CLASS`` or an entry point's name
+    (group ``dopeslam.odometry``) names, not yet constructed; None means ``kiss-icp``. Raises
+    :class:`ImportPathError` (one line)."""
+    spec = DEFAULT_ODOMETRY if spec is None else spec
+    cls = _load_named(spec, "odometry", ODOMETRIES)
+    if not callable(cls):
+        raise ImportPathError(f"odometry {spec!r}: {type(cls).__name__} object is not a class")
+    if isinstance(cls, type):
+        missing = [m for m in ("process", "pose_at", "trajectory") if not callable(getattr(cls, m, None))]
+        if missing:
+            raise ImportPathError(f"odometry {spec!r}: class {cls.__name__} has no {', '.join(missing)} method")
+    return cls
+
+
+def load_odometry(spec: str | None, T_base_lidar: np.ndarray) -> Odometry:
+    """An odometry from a bundled name (``kiss-icp``, the default for None; ``wheel``), ``MODULE:CLASS``
+    or an entry point's name (group ``dopeslam.odometry``): the class is called with the LiDAR's
+    mounting ``T_base_lidar`` and must have ``process``, ``pose_at`` and ``trajectory``. Raises
+    :class:`ImportPathError` (one line) otherwise."""
+    spec = DEFAULT_ODOMETRY if spec is None else spec
+    cls = odometry_factory(spec)
+    odometry = _construct(cls, spec, "odometry", (np.asarray(T_base_lidar, dtype=float),), "with T_base_lidar")
+    if not isinstance(odometry, Odometry):
+        missing = [m for m in ("process", "pose_at", "trajectory") if not callable(getattr(odometry, m, None))]
+        raise ImportPathError(f"odometry {spec!r}: {type(odometry).__name__} has no {', '.join(missing)} method")
+    return odometry
+
+
 def resolve_policy(name: str) -> str:
     """A labelling policy's registered name for ``name``: a registered name as it is, or a
-    ``MODULE:FUNCTION`` loaded and registered under that path. Raises :class:`ImportPathError`."""
+    ``MODULE:FUNCTION`` or an entry point's name (group ``dopeslam.policies``) loaded and registered
+    under that name. Raises :class:`ImportPathError`."""
     if name in POLICIES:
         return name
-    if ":" not in name:
-        raise ImportPathError(f"policy {name!r}: expected one of {sorted(POLICIES)} or MODULE:FUNCTION")
-    fn = load_import_path(name, "policy")
+    if ":" not in name and name not in entry_point_names("policy"):
+        raise ImportPathError(f"policy {name!r}: expected one of {sorted({*POLICIES, *entry_point_names('policy')})} "
+                              "or MODULE:FUNCTION")
+    fn = _load_named(name, "policy")
     if not callable(fn):
         raise ImportPathError(f"policy {name!r}: {type(fn).__name__} object is not callable")
     register(name)(fn)

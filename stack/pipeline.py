@@ -2,24 +2,28 @@
 
     LidarScan        -> odometry (T_map_base per sweep)
     CameraFrame      -> detector (DOPE + FPR) -> waits for a pose -> fusion -> object store
-    WheelOdometry    -> kept as a second trajectory (for comparison; the map does not use it)
+    WheelOdometry    -> kept as a second trajectory (for comparison), and given to an odometry
+                        that uses it (``on_wheel_odometry``)
     finish()         -> the last images fused, the store's floor set from the odometry, labels published
 
 One rule for the images: an image's detections are fused once the odometry has a pose *after* the
 image's stamp (the next registered sweep), so the robot pose at the image is interpolated between
 two sweeps, never extrapolated from a stale one. At ``finish`` the images still waiting are fused if
 the odometry gives a pose at their stamp (its bounded extrapolation past the last sweep), else
-dropped and counted in ``unposed``.
+dropped and counted in ``unposed``. Images before the first sweep are fused at the first sweep with
+whatever pose the odometry gives there (the LiDAR odometry: the first pose, within its bounded
+extrapolation), else dropped.
 
 Where the messages come from (a simulator, a rosbag, a robot) is not this module's business, nor is
-scoring: ``on_image`` returns the image's detections so a harness can score them against its truth.
+scoring: ``on_image`` returns the image's detections so a harness can score them against its truth,
+and ``on_fused_image`` hands each image over once it is fused (for a harness that labels on its own).
 The components are the :mod:`stack.interfaces` protocols, so other people's odometry, detector,
 labelling policy or loop closer plug in without changes here.
 """
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,24 +61,55 @@ class PipelineResult:
     unposed: int = 0
 
 
+@dataclass
+class FusedImage:
+    """One detected image once the pipeline fused it (see ``DopeSlam(on_fused_image=...)``).
+
+    ``index``: the image's number among the detected ones (0, 1, ...). ``T_map_base``: the robot pose
+    at ``stamp``; None when the odometry had none. ``observations``: per detection (same order), the
+    detection in ``map``, or None where the odometry had no pose at its stamp (dropped, ``unposed``).
+    """
+
+    index: int
+    stamp: float
+    T_map_base: np.ndarray | None
+    detections: list[Detection]
+    observations: list[Observation | None]
+
+
+@dataclass
+class _Waiting:
+    index: int
+    stamp: float
+    detections: list[Detection]
+    frame: CameraFrame | None = None  # kept only for the retirement check (its depth image)
+
+
 class DopeSlam:
     """Odometry + detector + fusion + object store, fed one message at a time.
 
-    ``odometry``, ``detector``: see :mod:`stack.interfaces`. ``T_base_cam``: the camera's mounting
-    (``camera_color_optical_frame`` in ``base_link``). ``dims``: cuboid size per class, for the store
-    (every class the detector reports must be there). ``policy``: a labelling policy's registered
-    name (:data:`stack.object_store.POLICIES`). ``loop_closer``: optional, see
+    ``odometry``, ``detector``: see :mod:`stack.interfaces` (``detector`` None: no detector runs, only
+    images given their detections do; e.g. odometry and loop closure alone). ``T_base_cam``: the
+    camera's mounting (``camera_color_optical_frame`` in ``base_link``). ``dims``: cuboid size per
+    class, for the store (every class the detector reports must be there). ``policy``: a labelling
+    policy's registered name (:data:`stack.object_store.POLICIES`). ``loop_closer``: optional, see
     :class:`stack.interfaces.LoopCloser`. ``detect_every``: run the detector on every n-th image
-    only. ``keep_observations``: keep every fused observation in the result. ``retire``: retire map
-    objects whose place the depth images show empty (:mod:`stack.retire`); None: never.
+    only. ``keep_observations``: keep every fused observation in the result. ``on_fused_image``:
+    called with each :class:`FusedImage` when it is fused, in image order. ``map_objects``: False
+    keeps the fused observations out of the object store (a harness that labels on its own).
+    ``retire``: retire map objects whose place the depth images show empty (:mod:`stack.retire`);
+    None: never.
     """
 
-    def __init__(self, odometry: Odometry, detector: Detector, T_base_cam: np.ndarray,
+    def __init__(self, odometry: Odometry, detector: Detector | None, T_base_cam: np.ndarray,
                  dims: Mapping[str, Sequence[float]], policy: str = "robust-mean",
                  loop_closer: LoopCloser | None = None, detect_every: int = 1, keep_observations: bool = False,
+                 on_fused_image: Callable[[FusedImage], None] | None = None, map_objects: bool = True,
                  retire: RetireConfig | None = None):
-        if not isinstance(detector, Detector):
+        if detector is not None and not isinstance(detector, Detector):
             raise TypeError(f"detector {type(detector).__name__} has no detect(frame) method")
+        if not isinstance(odometry, Odometry):
+            raise TypeError(f"odometry {type(odometry).__name__} lacks process(scan), pose_at(t) or trajectory()")
         if detect_every < 1:
             raise ValueError(f"detect_every must be >= 1, got {detect_every}")
         self.odometry = odometry
@@ -85,19 +120,26 @@ class DopeSlam:
         self.loop_closer = loop_closer
         self.detect_every = int(detect_every)
         self.keep_observations = keep_observations
+        self.on_fused_image = on_fused_image
+        self.map_objects = map_objects
         self.retirement = Retirement(retire) if retire is not None else None
-        self._views: list[CameraFrame] = []  # detected images waiting for a pose (retirement check)
         self.store = ObjectStore(dims=self.dims, policy=policy)
         self.wheel = WheelOdometryTrack()
+        self._odometry_wheel = getattr(odometry, "on_wheel_odometry", None)
         self.timing = {"odometry": 0.0, "detection": 0.0, "fusion": 0.0}  # seconds spent in each
         self.images = 0  # images received
-        self.detected_images = 0  # images the detector ran on
+        self.detected_images = 0  # images detected (by the detector, or given their detections)
         self.unposed = 0
-        self._pending: list[Detection] = []  # detections waiting for a pose after their stamp
+        self._pending: list[_Waiting] = []  # detected images waiting for a pose after their stamp
         self._observations: list[Observation] = []
         self._map_points: list[np.ndarray] = []
-        self._registered = 0
+        self.registered = 0  # sweeps the odometry registered
         self._finished = False
+
+    @property
+    def map_points(self) -> list[np.ndarray]:
+        """The LiDAR map so far (odometry poses), in ``map``: one (N, 3) array per kept sweep."""
+        return self._map_points
 
     # ------------------------------------------------------------------ messages
 
@@ -109,39 +151,47 @@ class DopeSlam:
         t1 = time.perf_counter()
         self.timing["odometry"] += t1 - t0
         if pose is not None:
-            self._registered += 1
+            self.registered += 1
             points = getattr(self.odometry, "last_points_base", None)
-            if self._registered % MAP_EVERY == 1 and points is not None:
+            if self.registered % MAP_EVERY == 1 and points is not None:
                 self._map_points.append(transform_points(pose, points[::MAP_POINT_STRIDE]))
         if self.loop_closer is not None:
             self.loop_closer.on_scan(self.odometry, pose)
-        if self._pending or self._views:
+        if self._pending:
             stamps = self.odometry.trajectory()[0]
             if len(stamps):
                 self._fuse_pending(upto=float(stamps[-1]))
         self.timing["fusion"] += time.perf_counter() - t1
         return pose
 
-    def on_image(self, frame: CameraFrame) -> list[Detection] | None:
+    def on_image(self, frame: CameraFrame, detections: Sequence[Detection] | None = None) -> list[Detection] | None:
         """A camera image: detected (every ``detect_every``-th one), its detections wait for a pose.
-        Returns the detections, or None when the detector did not run on this image."""
+        Returns the detections, or None when the detector did not run on this image.
+
+        ``detections``: the image's detections when they were found elsewhere (another thread, a
+        cache); the detector is not run and ``detect_every`` does not apply."""
         if self.loop_closer is not None:
             self.loop_closer.on_image(frame)
-        run = self.images % self.detect_every == 0
-        self.images += 1
-        if not run:
-            return None
-        t0 = time.perf_counter()
-        detections = list(self.detector.detect(frame))
-        self.timing["detection"] += time.perf_counter() - t0
+        if detections is None:
+            run = self.detector is not None and self.images % self.detect_every == 0
+            self.images += 1
+            if not run:
+                return None
+            t0 = time.perf_counter()
+            detections = list(self.detector.detect(frame))
+            self.timing["detection"] += time.perf_counter() - t0
+        else:
+            self.images += 1
+            detections = list(detections)
+        self._pending.append(_Waiting(self.detected_images, float(frame.stamp), detections,
+                                      frame if self.retirement is not None else None))
         self.detected_images += 1
-        self._pending.extend(detections)
-        if self.retirement is not None:
-            self._views.append(frame)
         return detections
 
     def on_wheel_odometry(self, msg: WheelOdometry) -> None:
         self.wheel.add(msg)
+        if self._odometry_wheel is not None:
+            self._odometry_wheel(msg)
 
     def on_message(self, msg) -> np.ndarray | list[Detection] | None:
         """Any of the three messages, dispatched by type (what ``on_scan`` / ``on_image`` return)."""
@@ -167,8 +217,9 @@ class DopeSlam:
         poses, store, map_points = poses_odom, self.store, self._map_points
         if self.loop_closer is not None and len(stamps):
             poses = self.loop_closer.finish(stamps, poses_odom)
-            store = self.loop_closer.refuse(ObjectStore(dims=self.dims, policy=self.policy), self.odometry.pose_at,
-                                            self.T_base_cam)
+            if self.map_objects:
+                store = self.loop_closer.refuse(ObjectStore(dims=self.dims, policy=self.policy),
+                                                self.odometry.pose_at, self.T_base_cam)
             map_points = self.loop_closer.map_points()
         floor = getattr(self.odometry, "floor_plane_map", None)
         store.floor = floor() if callable(floor) else None
@@ -181,31 +232,37 @@ class DopeSlam:
     # ------------------------------------------------------------------ fusion
 
     def _fuse_pending(self, upto: float | None) -> None:
-        """Fuse the waiting detections with stamps up to ``upto`` (all when None); keep the later ones."""
-        keep, seen = [], {}
-        for det in self._pending:
-            if upto is not None and det.stamp > upto:
-                keep.append(det)
+        """Fuse the waiting images with stamps up to ``upto`` (all when None); keep the later ones."""
+        keep = []
+        for img in self._pending:
+            if upto is not None and img.stamp > upto:
+                keep.append(img)
                 continue
-            if self.odometry.pose_at(det.stamp) is None:
+            self._fuse_image(img)
+        self._pending = keep
+
+    def _fuse_image(self, img: _Waiting) -> None:
+        pose_at = self.odometry.pose_at
+        fused, seen = [], set()
+        for det in img.detections:
+            if pose_at(det.stamp) is None:
                 self.unposed += 1
+                fused.append(None)
                 continue
-            obs = fuse(det, self.odometry.pose_at, self.T_base_cam)
-            obj = self.store.add(obs)
-            if obj is not None:
-                seen.setdefault(det.stamp, set()).add(obj.id)
+            obs = fuse(det, pose_at, self.T_base_cam)
+            fused.append(obs)
+            if self.map_objects:
+                obj = self.store.add(obs)
+                if obj is not None:
+                    seen.add(obj.id)
             if self.loop_closer is not None:
                 self.loop_closer.on_fused(det)
             if self.keep_observations:
                 self._observations.append(obs)
-        self._pending = keep
-        waiting = []
-        for frame in self._views:
-            if upto is not None and frame.stamp > upto:
-                waiting.append(frame)
-                continue
-            T_map_base = self.odometry.pose_at(frame.stamp)
+        if self.retirement is not None and img.frame is not None and self.map_objects:
+            T_map_base = pose_at(img.stamp)
             if T_map_base is not None:
-                self.retirement.view(self.store, T_map_base @ self.T_base_cam, frame.info, frame.depth_m,
-                                     seen.get(frame.stamp, set()), frame.stamp)
-        self._views = waiting
+                self.retirement.view(self.store, T_map_base @ self.T_base_cam, img.frame.info, img.frame.depth_m,
+                                     seen, img.stamp)
+        if self.on_fused_image is not None:
+            self.on_fused_image(FusedImage(img.index, img.stamp, pose_at(img.stamp), img.detections, fused))

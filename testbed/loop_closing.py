@@ -52,13 +52,14 @@ class LoopClosingRun:
 
     def on_scan(self, odom, T_map_base: np.ndarray | None) -> None:
         """After ``odom.process(scan)``: its pose (None when the scan was skipped)."""
-        if T_map_base is None or odom.last_points_base is None:
+        points = getattr(odom, "last_points_base", None)  # an odometry without points: no LiDAR key frames
+        if T_map_base is None or points is None:
             return
         t0 = time.perf_counter()
         stamp = float(odom.trajectory()[0][-1])
-        self.closer.add_scan(stamp, T_map_base, odom.last_points_base)
+        self.closer.add_scan(stamp, T_map_base, points)
         if self._scans % self._map_every == 0:
-            pts = odom.last_points_base[::4].astype(np.float32)
+            pts = points[::4].astype(np.float32)
             self._map.append((stamp, np.asarray(T_map_base, dtype=float), pts))
         self._scans += 1
         self.seconds += time.perf_counter() - t0
@@ -149,16 +150,18 @@ def key_frame_scenario(scenario, config: LoopClosureConfig | None = None):
 
 def run_loop_closure(scenario: str = "office_loop", out_dir: str = "out/loop_closure", seed: int | None = None,
                      duration: float | None = None, vocabulary: str | None = None,
-                     config: LoopClosureConfig | None = None) -> dict:
-    """KISS-ICP odometry and the loop closer over an episode; ``loop_closure.json`` and
-    ``loop_closure.png`` (ground truth, odometry, closed-loop trajectory, accepted closures).
+                     config: LoopClosureConfig | None = None, odometry=None) -> dict:
+    """The odometry (KISS-ICP, or ``odometry``: see ``testbed.run.make_odometry``) and the loop closer
+    over an episode, driven by the stack's pipeline (:class:`stack.pipeline.DopeSlam`) without a
+    detector; ``loop_closure.json`` and ``loop_closure.png`` (ground truth, odometry, closed-loop
+    trajectory, accepted closures).
 
     Only the key frames are rendered: the camera runs at its rate / ``keyframe_every`` and every
     image it gives is a key frame (the same images as one in ten at the full rate)."""
     from sim.episode import Episode
-    from stack.lidar_slam import LidarOdometry
-    from stack.messages import LidarScan
     from stack.metrics import ate_rmse_umeyama, rpe
+    from stack.pipeline import DopeSlam
+    from testbed.run import make_odometry
     from testbed.io import write_json
 
     out = Path(out_dir)
@@ -166,23 +169,17 @@ def run_loop_closure(scenario: str = "office_loop", out_dir: str = "out/loop_clo
     sc, cfg = key_frame_scenario(scenario, config)
     lc = LoopClosingRun(vocabulary, cfg)
     wall0 = last = time.perf_counter()
-    t_odom = 0.0
     with Episode(sc, seed=seed, duration=duration) as ep:
-        odom = LidarOdometry(ep.T_base_velodyne)
+        pipe = DopeSlam(make_odometry(odometry, ep.T_base_velodyne), None, ep.T_base_camera, {}, loop_closer=lc)
         for msg in ep.frames():
-            if isinstance(msg, LidarScan):
-                t0 = time.perf_counter()
-                T = odom.process(msg)
-                t_odom += time.perf_counter() - t0
-                lc.on_scan(odom, T)
-            elif isinstance(msg, CameraFrame):
-                lc.on_image(msg)
+            pipe.on_message(msg)
             if time.perf_counter() - last > 30:
                 last = time.perf_counter()
                 log.info("t = %.0f of %.0f s: %d key frames, %d closures, %d rejected", msg.stamp, ep.duration,
                          lc.closer.stats.key_frames, lc.closer.stats.accepted, lc.closer.stats.rejected)
-        stamps, T_odom = odom.trajectory()
-        T_lc = lc.finish(stamps, T_odom)
+        result = pipe.finish()
+        stamps, T_odom, T_lc = result.stamps, result.T_map_base_odometry, result.T_map_base
+        t_odom = pipe.timing["odometry"]
         T_world_map = ep.T_world_base_at(stamps[0])
         gt = ep.T_world_base_at(stamps)
         report = {"scenario": ep.sc.name, "seed": ep.seed, "sim_seconds": ep.sim_seconds,
@@ -241,11 +238,23 @@ def add_arguments(p) -> None:
     p.add_argument("--vocabulary", default=None, help="vocabulary .npz (default: built from the training scenarios)")
     p.add_argument("--proximity", choices=["fallback", "always", "never"], default=None,
                    help="LiDAR-proximity candidates (default: fallback, when retrieval has none)")
+    from testbed.commands.run import add_odometry_option
+
+    add_odometry_option(p)
 
 
 def run_args(a) -> int:
+    import sys
+
+    from stack.interfaces import ImportPathError, odometry_factory
+
     cfg = LoopClosureConfig(**({"proximity": a.proximity} if a.proximity else {}))
-    r = run_loop_closure(a.scenario, a.out, a.seed, a.duration, a.vocabulary, cfg)
+    try:
+        odometry_factory(a.odometry)
+        r = run_loop_closure(a.scenario, a.out, a.seed, a.duration, a.vocabulary, cfg, odometry=a.odometry)
+    except ImportPathError as e:
+        print(f"dopeslam loop-closure: --{e}", file=sys.stderr)
+        return 2
     print(f"{r['scenario']}: {r['sim_seconds']:.0f} s simulated in {r['wall_seconds']:.0f} s; "
           f"{r['loop_closures']} loop closures ({r['false_loop_closures']} false), "
           f"{r['loop_candidates_rejected']} candidates rejected")

@@ -1,10 +1,11 @@
-"""``dopeslam replay``: the stack offline on a rosbag, in the paper's loose-coupled passes (section 3.3).
+"""``dopeslam replay``: the stack offline on a rosbag. The bag is the message source; the stack's
+pipeline (:class:`stack.pipeline.DopeSlam`) gets its scans, images and wheel odometry in stamp order,
+as ``dopeslam run`` gives it the simulator's, with the same rule for images that wait for a pose.
 
-1. Odometry: KISS-ICP (``stack.lidar_slam.LidarOdometry``) over every scan of the bag.
-2. Detection: DOPE (+ FPR) over every image; it needs no pose, so it runs at the same time as
-   pass 1 (a second reader on the same bag, in a thread) when ``parallel``.
-3. Fusion: each detection is carried into ``map`` with the robot pose interpolated from the
-   finished trajectory at the image's stamp, then added to the object store in stamp order.
+The detector needs no pose, so by default it runs ahead of the pipeline on a second reader of the
+same bag, in a thread (:class:`DetectionAhead`, the paper's loose coupling, section 3.3); the
+pipeline then fuses each image's detections when its turn in the stream comes. ``parallel=False``
+(``--sequential``) runs the detector in the message loop instead.
 
 The outputs are those of ``dopeslam run`` (report.json, labels.xlsx/.json, TUM trajectories,
 map.png, results bag). Scoring needs ground truth and appears only for what the bag carries:
@@ -12,16 +13,17 @@ trajectory scores with ``/ground_truth/base_pose``, label scores with ``/ground_
 detection precision and recall with ``/ground_truth/image_objects``. A real robot's bag gets the
 map, the labels and the trajectory, and no scores.
 
-Replaying the bag that ``run_episode(..., bag_writer=...)`` recorded gives that run's results:
-the live run fuses each image with the pose interpolated between the scans around it as well
-(images wait for the next scan), and before the first scan holds the first pose, as here.
+Replaying the bag that ``run_episode(..., bag_writer=...)`` recorded gives that run's results: the
+same pipeline gets the same messages.
 """
 from __future__ import annotations
 
+import heapq
 import logging
+import queue
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Callable
@@ -29,12 +31,10 @@ from typing import Callable
 import numpy as np
 
 from stack.errors import OutputError
-from stack.fusion import fuse
-from stack.lidar_slam import LidarOdometry, LidarOdometryConfig, WheelOdometryTrack
-from stack.messages import CameraFrame, Detection
+from stack.interfaces import Detector
+from stack.messages import CameraFrame, LidarScan
 from stack.metrics import write_tum
-from stack.object_store import ObjectStore, Observation
-from stack.pipeline import MAP_EVERY, MAP_POINT_STRIDE  # as the live run: the same LiDAR map picture
+from stack.pipeline import DopeSlam
 from stack.transforms import transform_points
 from testbed.bags import BagReader, MissingTopicError
 from testbed.bags import topics as T
@@ -85,124 +85,72 @@ class BagImageTruth:
         return truths
 
 
-# --- pass 1: odometry ---------------------------------------------------------------------------
+# --- the message stream ---------------------------------------------------------------------------
 
-@dataclass
-class OdometryPass:
-    odom: LidarOdometry
-    map_points: list[np.ndarray] = field(default_factory=list)  # map frame, as the live run collects them
-    seconds: float = 0.0  # odometry only
-    read_seconds: float = 0.0  # reading and decoding the scans
-    scans: int = 0
+class DetectionAhead:
+    """The detector over a bag's images on a second reader, in a thread, ahead of the pipeline.
 
+    Iterating gives ``(frame, detections or None when not detected, seconds)`` in image order; the
+    queue between the thread and the pipeline is bounded, so memory stays bounded. An error in the
+    thread is raised in the iterating one."""
 
-def odometry_pass(bag: BagReader, config: LidarOdometryConfig | None = None, loop_closer=None) -> OdometryPass:
-    """KISS-ICP over every scan of ``bag`` (an open reader). With ``loop_closer`` (a
-    ``testbed.loop_closing.LoopClosingRun``) the colour images are read too, in stamp order with the
-    scans, and both go to the loop closer as they do in a live run."""
-    res = OdometryPass(LidarOdometry(bag.T_base_velodyne, config))
-    odom = res.odom
-    t_last = time.perf_counter()
-    source = bag.scans() if loop_closer is None else bag.frames(lidar=True, camera=True, odometry=False)
-    for scan in source:
-        t0 = time.perf_counter()
-        res.read_seconds += t0 - t_last
-        if isinstance(scan, CameraFrame):
-            loop_closer.on_image(scan)
-            t_last = time.perf_counter()
-            continue
-        pose = odom.process(scan)
-        if loop_closer is not None:
-            loop_closer.on_scan(odom, pose)
-        res.scans += 1
-        if pose is not None and len(odom) % MAP_EVERY == 1 and odom.last_points_base is not None:
-            res.map_points.append(transform_points(pose, odom.last_points_base[::MAP_POINT_STRIDE]))
-        t_last = time.perf_counter()
-        res.seconds += t_last - t0
-        if res.scans % 100 == 0:
-            log.info("odometry: %d scans (t = %.1f s)", res.scans, scan.stamp)
-    if not len(odom):
-        raise MissingTopicError(bag.path, "lidar", f"scans on {bag.lidar_topic} that odometry can register",
-                                bag.topics, f"{res.scans} scan(s) read, none registered")
-    return res
+    _END = object()
 
+    def __init__(self, open_reader: Callable[[], BagReader], detector, dope_every: int = 1, maxsize: int = 16):
+        self._open, self._detector, self._every = open_reader, detector, dope_every
+        self._queue: queue.Queue = queue.Queue(maxsize)
+        self._stop = threading.Event()
+        self.read_seconds = 0.0
+        self._thread = threading.Thread(target=self._run, name="replay-detection", daemon=True)
+        self._thread.start()
 
-# --- pass 2: detection ----------------------------------------------------------------------------
+    def _put(self, item) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.2)
+                return True
+            except queue.Full:
+                continue
+        return False
 
-@dataclass
-class DetectionPass:
-    detections: list[Detection] = field(default_factory=list)  # in image order
-    flags: list[bool] = field(default_factory=list)  # per detection: correct (when scored)
-    dlog: DetectionLog = field(default_factory=DetectionLog)
-    images: int = 0
-    read_seconds: float = 0.0
+    def _run(self) -> None:
+        try:
+            reader = self._open()
+            try:
+                t_last = time.perf_counter()
+                for i, frame in enumerate(reader.camera_frames()):
+                    t0 = time.perf_counter()
+                    self.read_seconds += t0 - t_last
+                    dets = list(self._detector.detect(frame)) if i % self._every == 0 else None
+                    t_last = time.perf_counter()
+                    if not self._put((frame, dets, t_last - t0)):
+                        return
+            finally:
+                reader.close()
+            self._put(self._END)
+        except BaseException as exc:  # re-raised where the items are taken
+            self._put(exc)
 
+    def __iter__(self):
+        while True:
+            item = self._queue.get()
+            if item is self._END:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
 
-def detection_pass(bag: BagReader, detector, dope_every: int = 1,
-                   truth: BagImageTruth | None = None) -> DetectionPass:
-    """``detector.detect`` over every ``dope_every``-th image of ``bag``; scored when ``truth``."""
-    res = DetectionPass()
-    dlog = res.dlog
-    t_last = time.perf_counter()
-    for frame in bag.camera_frames():
-        t0 = time.perf_counter()
-        res.read_seconds += t0 - t_last
-        if res.images % dope_every == 0:
-            dets = detector.detect(frame)
-            t1 = time.perf_counter()
-            dlog.seconds += t1 - t0
-            dlog.frames += 1
-            if truth is not None:
-                res.flags.extend(score_detections(dlog, dets, truth.image_truth(frame)))
-            else:
-                dlog.predictions += sum(d.fpr_pass for d in dets)
-            res.detections.extend(dets)
-        res.images += 1
-        t_last = time.perf_counter()
-        if res.images % 100 == 0:
-            log.info("detection: %d images (t = %.1f s), %d detections", res.images, frame.stamp,
-                     len(res.detections))
-    return res
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=30)
 
 
-# --- pass 3: fusion ---------------------------------------------------------------------------------
+def _merged(sensors, images):
+    """Scans and wheel odometry (``sensors``) and detected images (``images``) in stamp order; at one
+    stamp the sensor message first."""
+    return heapq.merge(((m.stamp, 0, m, None) for m in sensors),
+                       ((f.stamp, 1, f, (dets, s)) for f, dets, s in images), key=lambda x: (x[0], x[1]))
 
-def replay_pose_lookup(odom: LidarOdometry) -> Callable[[float], np.ndarray | None]:
-    """``T_map_base`` at t from the finished trajectory, as the live run has it when it fuses.
-
-    Between scans: interpolated; after the last: ``odom.pose_at`` (constant velocity, bounded);
-    before the first scan: the first pose (the live run fuses those images right after the first
-    scan, when no velocity is known yet), within ``max_extrapolation_s``; else None.
-    """
-    stamps, poses = odom.trajectory()
-    t0, first = float(stamps[0]), poses[0]
-    limit = odom.config.max_extrapolation_s
-
-    def lookup(t: float) -> np.ndarray | None:
-        if t < t0:
-            return first.copy() if t >= t0 - limit else None
-        return odom.pose_at(t)
-
-    return lookup
-
-
-def fuse_into_store(detections: list[Detection], lookup: Callable[[float], np.ndarray | None],
-                    T_base_cam: np.ndarray, store: ObjectStore) -> tuple[list[Observation], int]:
-    """Each detection into ``map`` at its image's pose and into ``store``, in stamp order.
-    Returns (observations, detections without a pose)."""
-    observations, unposed = [], 0
-    for det in sorted(detections, key=lambda d: d.stamp):  # stable: images are in order already
-        pose = lookup(det.stamp)
-        if pose is None:
-            unposed += 1
-            continue
-        obs = fuse(det, lambda _t, pose=pose: pose, T_base_cam)
-        store.add(obs)
-        observations.append(obs)
-    return observations, unposed
-
-
-# --- the whole replay ---------------------------------------------------------------------------------
 
 def open_bag(path, topics: BagTopics, input_mode: str, need_camera: bool = True) -> BagReader:
     extra = {"base_frame": topics.base_frame} if topics.base_frame else {}
@@ -228,15 +176,22 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                fpr: bool = True, weights=None, policy: str = "robust-mean", topics: BagTopics | None = None,
                dope_every: int = 1, parallel: bool = True, write_outputs: bool = True,
                results_bag=None, keep_detections: bool = False, loop_closure: bool = False,
-               vocabulary=None) -> dict:
-    """Run the stack over a bag in passes; returns the report (written to OUT/report.json).
+               vocabulary=None, odometry=None) -> dict:
+    """Run the stack's pipeline over a bag; returns the report (written to OUT/report.json).
 
-    ``loop_closure``: pass 1 also feeds the loop closer (key frames from the colour images, scans);
-    the corrected trajectory then places the detections in pass 3, and replaces the odometry's in
-    the outputs (the odometry-only ATE is reported beside it when the bag has ground truth)."""
+    ``detector``: any :class:`stack.interfaces.Detector` (default: DOPE + FPR for ``input_mode``,
+    ``stages``, ``fpr``, ``weights``). ``odometry``: an :class:`stack.interfaces.Odometry`, or a
+    name for :func:`stack.interfaces.load_odometry` (default: KISS-ICP). ``parallel``: the detector
+    runs on a second reader in a thread, ahead of the pipeline (else in the message loop).
+    ``loop_closure``: the loop closer rides along (key frames from the colour images, scans); the
+    corrected trajectory then places the labels, and replaces the odometry's in the outputs (the
+    odometry-only ATE is reported beside it when the bag has ground truth)."""
     from sim.objects import load_catalog
-    from testbed.run import make_detector
+    from stack.interfaces import load_odometry
+    from testbed.run import detector_name, make_detector
 
+    if detector is not None and not isinstance(detector, Detector):
+        raise TypeError(f"detector {type(detector).__name__} has no detect(frame) method")
     topics = topics or BagTopics()
     out = Path(out_dir)
     if results_bag is not None:  # never over the input, whatever --force says
@@ -246,14 +201,14 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     kept = edited_objects(out) if write_outputs else []  # checked before any work starts
     wall0 = time.perf_counter()
     bag = open_bag(bag_path, topics, input_mode)
+    ahead = None
     try:
         log.info("%s", bag.describe())
         detector = detector or make_detector(input_mode, stages, fpr, weights)
         dims = {c: s.dims for c, s in load_catalog().items()}
         truth = BagImageTruth(bag) if bag.topics.get(T.GT_IMAGE_OBJECTS) == "std_msgs/msg/String" else None
-
-        # passes 1 and 2: independent of each other
-        odo_result: dict = {}
+        odom = load_odometry(odometry, bag.T_base_velodyne) if odometry is None or isinstance(odometry, str) \
+            else odometry
 
         lc = None
         if loop_closure:
@@ -263,54 +218,52 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             if bag.rgb_topic is None:
                 log.warning("%s: no colour images: the loop closer uses LiDAR key frames only", bag.path)
 
-        def run_odometry() -> None:
-            try:
-                reader = open_bag(bag_path, topics, input_mode, need_camera=lc is not None) if parallel else bag
-                try:
-                    odo_result["pass"] = odometry_pass(reader, loop_closer=lc)
-                finally:
-                    if reader is not bag:
-                        reader.close()
-            except BaseException as exc:  # re-raised in the main thread
-                odo_result["error"] = exc
-
-        t_passes = time.perf_counter()
+        pipe = DopeSlam(odom, None if parallel else detector, bag.T_base_camera, dims, policy, loop_closer=lc,
+                        detect_every=dope_every, keep_observations=keep_detections)
+        dlog = DetectionLog()
+        all_dets: list = []
+        scans = 0
+        read_s = 0.0
         if parallel:
-            worker = threading.Thread(target=run_odometry, name="replay-odometry", daemon=True)
-            worker.start()
-            det = detection_pass(bag, detector, dope_every, truth)
-            worker.join()
+            ahead = DetectionAhead(lambda: open_bag(bag_path, topics, input_mode), detector, dope_every)
+            stream = _merged(bag.frames(lidar=True, camera=False, odometry=True), ahead)
         else:
-            run_odometry()
-            if "error" not in odo_result:
-                det = detection_pass(bag, detector, dope_every, truth)
-        if "error" in odo_result:
-            raise odo_result["error"]
-        passes_wall = time.perf_counter() - t_passes
-        odo: OdometryPass = odo_result["pass"]
-
-        # loop closure: the corrected trajectory
-        stamps, poses = odo.odom.trajectory()
-        lookup = replay_pose_lookup(odo.odom)
-        poses_odom = poses
-        if lc is not None:
-            poses = lc.finish(stamps, poses_odom)
-            lookup = lc.pose_lookup(lookup)
-            odo.map_points = lc.map_points()
-
-        # pass 3: fusion
-        t0 = time.perf_counter()
-        store = ObjectStore(dims=dims, policy=policy)
-        T_base_cam = bag.T_base_camera
-        observations, unposed = fuse_into_store(det.detections, lookup, T_base_cam, store)
-        store.floor = odo.odom.floor_plane_map()
-        store.publish()
-        fusion_s = time.perf_counter() - t0
-
-        wheel = WheelOdometryTrack()
-        if bag.odom_topic:
-            for msg in bag.wheel_odometry():
-                wheel.add(msg)
+            stream = ((m.stamp, 0, m, None) for m in bag.frames(lidar=True, camera=True, odometry=True))
+        t_last = time.perf_counter()
+        for _, _, msg, given in stream:
+            read_s += time.perf_counter() - t_last
+            if isinstance(msg, CameraFrame):
+                if given is not None:
+                    dets, seconds = given
+                    dets = pipe.on_image(msg) if dets is None else pipe.on_image(msg, dets)
+                    dlog.seconds += seconds
+                else:
+                    dets = pipe.on_image(msg)
+                if dets is not None:
+                    dlog.frames += 1
+                    if truth is not None:
+                        flags = score_detections(dlog, dets, truth.image_truth(msg))
+                    else:
+                        dlog.predictions += sum(d.fpr_pass for d in dets)
+                        flags = None
+                    if keep_detections:
+                        all_dets.extend(dets if flags is None else zip(dets, flags))
+            else:
+                pipe.on_message(msg)
+                if isinstance(msg, LidarScan):
+                    scans += 1
+                    if scans % 100 == 0:
+                        log.info("t = %.1f s: %d scans, %d images, %d map objects", msg.stamp, scans,
+                                 pipe.images, len(pipe.store))
+            t_last = time.perf_counter()
+        if not parallel:
+            dlog.seconds = pipe.timing["detection"]
+        if not len(odom.trajectory()[0]):
+            raise MissingTopicError(bag.path, "lidar", f"scans on {bag.lidar_topic} that odometry can register",
+                                    bag.topics, f"{scans} scan(s) read, none registered")
+        result = pipe.finish()
+        store, stamps, poses, poses_odom = result.store, result.stamps, result.T_map_base, result.T_map_base_odometry
+        map_points = result.map_points
         wall = time.perf_counter() - wall0
 
         gt = bag.groundtruth
@@ -325,17 +278,18 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             "ground_truth": {"trajectory": gt is not None, "objects": bool(gt is not None and gt.objects),
                              "images": truth is not None},
             "bag_seconds": span, "wall_seconds": wall, "real_time_factor": span / wall if wall > 0 else None,
-            "parallel_passes": parallel,
-            "time_split_s": {"odometry": odo.seconds, "odometry_reading": odo.read_seconds,
-                             "dope": det.dlog.seconds, "image_reading": det.read_seconds,
-                             "passes_wall": passes_wall, "fusion": fusion_s},
+            "parallel_passes": parallel, "detector": detector_name(detector), "odometry_class": detector_name(odom),
+            "time_split_s": {"odometry": pipe.timing["odometry"], "odometry_reading": read_s,
+                             "dope": dlog.seconds, "image_reading": ahead.read_seconds if ahead else 0.0,
+                             "fusion": pipe.timing["fusion"]},
         }
         if bag.salvaged:
             report["salvaged"] = bag.salvaged
         if bag.bad_messages:  # skipped, counted and named (the detection reader's are in its log)
             report["bad_messages"] = bag.bad_message_summary()
-        odometry = {"poses": int(len(stamps)), "scans": odo.scans, "path_length_m": _path_length(poses),
-                    "odometry_hz": odo.odom.stats.hz}
+        stats = getattr(odom, "stats", None)
+        odometry = {"poses": int(len(stamps)), "scans": scans, "path_length_m": _path_length(poses),
+                    "odometry_hz": getattr(stats, "hz", None)}
         T_world_map = None
         if gt is not None:
             T_world_map = gt.T_world_base_at(stamps[0])
@@ -350,13 +304,13 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             report["time_split_s"]["loop_closure"] = lc.seconds
         report["loop_closure"] = lc is not None
         report["odometry"] = odometry
-        if gt is not None and len(wheel) > 1:
-            ws, wp = wheel.trajectory()
+        ws, wp = result.wheel_stamps, result.T_odom_base
+        if gt is not None and len(ws) > 1:
             report["wheel_odometry"] = score_trajectory(ws, wp, gt, gt.T_world_base_at(ws[0]))
-        dsum = det.dlog.summary()
+        dsum = dlog.summary()
         if truth is None:  # precision and recall need the truth per image: left out
             dsum = {k: dsum[k] for k in ("frames", "predictions", "fps")}
-        dsum["detections_without_pose"] = unposed
+        dsum["detections_without_pose"] = result.unposed
         report["detection"] = dsum
         if gt is not None and gt.objects:
             labels, labels_summary = score_labels(store, gt.objects, T_world_map)
@@ -379,23 +333,25 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                     write_tum(stage / "groundtruth_tum.txt", stamps, gt.T_world_base_at(stamps))
                     if gt.objects:
                         shim = SimpleNamespace(groundtruth=SimpleNamespace(T_world_base=gt.T_world_base))
-                        _map_png(stage / "map.png", shim, T_world_map, poses, odo.map_points, report["labels"], report)
+                        _map_png(stage / "map.png", shim, T_world_map, poses, map_points, report["labels"], report)
                     else:
-                        _map_png_untruthed(stage / "map.png", poses, odo.map_points, store, report, T_world_map)
+                        _map_png_untruthed(stage / "map.png", poses, map_points, store, report, T_world_map)
                 else:
                     write_tum(stage / "estimate_tum.txt", stamps, poses)
-                    _map_png_untruthed(stage / "map.png", poses, odo.map_points, store, report)
-                write_results_bag(results_bag or stage / RESULTS_BAG_NAME, store, odo.map_points, stamps, poses,
+                    _map_png_untruthed(stage / "map.png", poses, map_points, store, report)
+                write_results_bag(results_bag or stage / RESULTS_BAG_NAME, store, map_points, stamps, poses,
                                   T_world_map=T_world_map, objects=gt.objects if gt is not None and gt.objects else None)
                 write_json(stage / "report.json", report)
         if keep_detections:
-            report["_detections"] = list(zip(det.detections, det.flags)) if truth is not None else det.detections
+            report["_detections"] = all_dets
             report["_store"] = store
-            report["_observations"] = observations
+            report["_observations"] = result.observations
             report["_trajectory"] = (stamps, poses)
             report["_T_world_map"] = T_world_map
         return report
     finally:
+        if ahead is not None:
+            ahead.close()
         bag.close()
 
 

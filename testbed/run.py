@@ -118,6 +118,19 @@ def make_detector(input_mode: str, stages: int, fpr: bool, weights=None, config=
 DOPE_DETECTOR = "stack.dope_fpr:DopeDetector"
 
 
+def make_odometry(odometry, T_base_lidar: np.ndarray, kiss_icp_config=None):
+    """The pipeline's odometry: None or ``kiss-icp``: KISS-ICP with ``kiss_icp_config`` (a
+    ``stack.lidar_slam.LidarOdometryConfig``); another name: :func:`stack.interfaces.load_odometry`;
+    a callable: called with ``T_base_lidar``. Raises ``stack.interfaces.ImportPathError``."""
+    from stack.interfaces import DEFAULT_ODOMETRY, load_odometry
+
+    if odometry is None or odometry == DEFAULT_ODOMETRY:
+        return LidarOdometry(T_base_lidar, kiss_icp_config)
+    if isinstance(odometry, str):
+        return load_odometry(odometry, T_base_lidar)
+    return odometry(np.asarray(T_base_lidar, dtype=float))
+
+
 def detector_name(detector) -> str:
     """``module:Class`` of a detector, for the report."""
     cls = type(detector)
@@ -127,8 +140,11 @@ def detector_name(detector) -> str:
 def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_mode="rgb", stages=6, fpr=True,
                 policy="robust-mean", duration=None, weights=None, detector=None, dope_every: int = 1,
                 write_outputs: bool = True, keep_detections: bool = False, bag_writer=None,
-                results_bag=None, loop_closure: bool = False, config=None, faults=(), store=None, retire=True) -> dict:
+                results_bag=None, loop_closure: bool = False, config=None, faults=(), store=None, retire=True, odometry=None) -> dict:
     """One simulated episode through the stack's pipeline (:class:`stack.pipeline.DopeSlam`), scored.
+
+    ``odometry``: None (KISS-ICP), a name for :func:`stack.interfaces.load_odometry` (``wheel``,
+    ``MODULE:CLASS``, an entry point's name) or a callable ``T_base_lidar -> Odometry``.
 
     ``detector``: any :class:`stack.interfaces.Detector` (default: DOPE + FPR for ``input_mode``,
     ``stages``, ``fpr``, ``weights``); one with ``bind_episode(ep)`` is given the episode before the
@@ -172,7 +188,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
             lc = LoopClosingRun() if config is None else \
                 LoopClosingRun(config.loop_closure.vocabulary, config.loop_closure.closure_config())
-        odom = LidarOdometry(ep.T_base_velodyne, None if config is None else config.odometry)
+        odom = make_odometry(odometry, ep.T_base_velodyne, None if config is None else config.odometry)
         pipe = DopeSlam(odom, detector, ep.T_base_camera, dims, policy, loop_closer=lc, detect_every=dope_every,
                         keep_observations=keep_detections)
         if config is not None:  # the store as configured (before the first message)
@@ -215,7 +231,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             if t_last - last_log > 15 and not watch.shown:  # the bar says it when shown
                 last_log = t_last
                 log.info("t = %5.1f s of %.0f s: %d scans, %d images, %d map objects", msg.stamp, ep.duration,
-                         len(odom), dlog.frames, len(pipe.store))
+                         pipe.registered, dlog.frames, len(pipe.store))
         result = pipe.finish()
         if config is not None and lc is not None:  # loop closure placed the map again in a fresh store
             result.store.evidence = config.evidence_or_none()
@@ -232,13 +248,13 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         odo = score_trajectory(stamps, poses, ep, T_world_map)
         if lc is not None:  # the closed-loop trajectory replaced the odometry's; labels were placed again
             odo.update(lc.summary(stamps, result.T_map_base_odometry, poses, T_world_map, ep.T_world_base_at))
-        odo["odometry_hz"] = odom.stats.hz if hasattr(odom.stats, "hz") else None
+        odo["odometry_hz"] = getattr(getattr(odom, "stats", None), "hz", None)
         T_world_odom0 = ep.T_world_base_at(result.wheel_stamps[0])
         wheel_score = score_trajectory(result.wheel_stamps, result.T_odom_base, ep, T_world_odom0)
         labels, labels_summary = score_labels(store, ep.objects, T_world_map)
         report = {
             "scenario": ep.sc.name, "seed": ep.seed, "light": ep.light, "input": input_mode, "stages": stages,
-            "fpr": fpr, "policy": policy, "detector": detector_name(detector),
+            "fpr": fpr, "policy": policy, "detector": detector_name(detector), "odometry_class": detector_name(odom),
             "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
             "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,
             "odometry": odo, "wheel_odometry": wheel_score,

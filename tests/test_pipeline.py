@@ -292,3 +292,92 @@ def test_the_fused_pose_is_the_chain_map_base_camera_object():
     # the camera sits where the mounting puts it: 0.1 m ahead of base_link, 0.3 m up
     np.testing.assert_allclose(inv(T_map_base)[:3, :3] @ obs.cam_xyz + inv(T_map_base)[:3, 3], [0.1, 0, 0.3],
                                atol=1e-12)
+
+
+# --- what a harness that labels on its own, or detects elsewhere, gets --------------------------------
+
+def test_each_detected_image_is_handed_over_once_fused_in_order_with_its_pose():
+    fused = []
+    pipe = make(LineOdometry(extrapolation_s=0.03), on_fused_image=fused.append)
+    pipe.on_image(image(0.0))  # before any pose: handed over unposed
+    pipe.on_scan(scan(0.0))  # pose 0.05
+    assert [f.stamp for f in fused] == [0.0] and fused[0].T_map_base is None and fused[0].observations == [None]
+    pipe.on_image(image(0.08))
+    pipe.on_image(image(0.12))
+    assert len(fused) == 1  # both wait for a pose after them
+    pipe.on_scan(scan(0.1))  # pose 0.15
+    pipe.on_image(image(0.17))
+    pipe.on_image(image(0.4))  # past the last pose + extrapolation at the end
+    pipe.finish()
+    assert [f.index for f in fused] == [0, 1, 2, 3, 4] and [f.stamp for f in fused] == [0.0, 0.08, 0.12, 0.17, 0.4]
+    for f in fused[1:4]:
+        np.testing.assert_allclose(f.T_map_base, pose_x(f.stamp), atol=1e-12)
+        (obs,) = f.observations
+        np.testing.assert_allclose(obs.xyz, expected_xyz(f.stamp), atol=1e-12)
+        assert f.detections[0].stamp == f.stamp
+    assert fused[4].T_map_base is None and fused[4].observations == [None] and pipe.unposed == 2
+
+
+def test_detections_found_elsewhere_are_fused_with_the_same_rule_and_no_detector_runs():
+    det = YogurtAhead()
+    pipe = make(detector=det, detect_every=5)
+    pipe.on_scan(scan(0.0))
+    given = [Detection("Mustard", 0.09, T_CAM_OBJ.copy(), np.zeros((9, 2)), np.ones(9), 3.0)]
+    assert pipe.on_image(image(0.09), given) == given
+    assert pipe.on_image(image(0.095), []) == []  # detected, nothing found
+    assert det.seen == [] and pipe.images == 2 and pipe.detected_images == 2
+    assert len(pipe.store) == 0
+    pipe.on_scan(scan(0.1))
+    (obs,) = observations(pipe)
+    assert obs.cls == "Mustard"
+    np.testing.assert_allclose(obs.xyz, expected_xyz(0.09), atol=1e-12)
+
+
+def test_without_a_detector_images_only_reach_the_loop_closer():
+    lc = RecordingLoopCloser()
+    pipe = DopeSlam(LineOdometry(), None, T_BASE_CAM, DIMS, loop_closer=lc)
+    pipe.on_scan(scan(0.0))
+    assert pipe.on_image(image(0.07)) is None
+    pipe.on_scan(scan(0.1))
+    res = pipe.finish()
+    assert lc.images == [0.07] and pipe.images == 1 and pipe.detected_images == 0 and len(res.store) == 0
+    np.testing.assert_allclose(res.T_map_base[:, 1, 3], 1.0)  # the loop closer still corrects the trajectory
+
+
+def test_map_objects_false_fuses_and_hands_over_but_keeps_the_store_empty():
+    fused = []
+    pipe = make(on_fused_image=fused.append, map_objects=False, keep_observations=True)
+    pipe.on_scan(scan(0.0))
+    pipe.on_image(image(0.1))
+    pipe.on_scan(scan(0.1))
+    res = pipe.finish()
+    assert len(res.store) == 0 and len(fused) == 1 and len(res.observations) == 1
+    np.testing.assert_allclose(fused[0].observations[0].xyz, expected_xyz(0.1), atol=1e-12)
+
+
+def test_wheel_odometry_reaches_an_odometry_that_takes_it():
+    class WheelHungry(LineOdometry):
+        def __init__(self):
+            super().__init__()
+            self.wheel = []
+
+        def on_wheel_odometry(self, msg):
+            self.wheel.append(msg.stamp)
+
+    odom = WheelHungry()
+    pipe = make(odom)
+    for t in (0.0, 0.02, 0.04):
+        pipe.on_message(WheelOdometry(t, pose_x(t), 1.0, 0.0))
+    assert odom.wheel == [0.0, 0.02, 0.04] and len(pipe.wheel) == 3
+
+
+def test_an_odometry_without_the_protocol_methods_is_refused():
+    class NoTrajectory:
+        def process(self, scan):
+            return None
+
+        def pose_at(self, t):
+            return None
+
+    with pytest.raises(TypeError, match="odometry NoTrajectory"):
+        DopeSlam(NoTrajectory(), YogurtAhead(), T_BASE_CAM, DIMS)

@@ -14,11 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stack.interfaces import (Detector, ImportPathError, LabellingPolicy, LoopCloser, Odometry, load_detector,
-                              load_import_path, resolve_policy)
+from stack.interfaces import (Detector, ImportPathError, LabellingPolicy, LoopCloser, Odometry, entry_point_names,
+                              load_detector, load_import_path, load_odometry, odometry_factory, resolve_policy)
 from stack.object_store import POLICIES, Label, Observation
+from stack.messages import LidarScan, WheelOdometry
 from stack.pipeline import DopeSlam
-from test_pipeline import DIMS, T_BASE_CAM, LineOdometry, expected_xyz, image, scan
+from test_pipeline import DIMS, T_BASE_CAM, LineOdometry, expected_xyz, image, pose_x, scan
 from test_run_e2e import short_scenario  # noqa: F401 (a fixture)
 from testbed.cli import main
 
@@ -54,6 +55,50 @@ def test_every_registered_policy_is_a_labelling_policy():
         label = policy(obs)
         assert isinstance(label, Label) and label.xyz.shape == (3,), name
         assert policy([]) is None, name
+
+
+def test_the_wheel_only_odometry_is_an_odometry_and_has_a_short_name():
+    from stack.lidar_slam import LidarOdometry
+    from stack.wheel_odometry import WheelOnlyOdometry
+
+    assert isinstance(WheelOnlyOdometry(), Odometry)
+    assert isinstance(load_odometry("wheel", np.eye(4)), WheelOnlyOdometry)
+    assert isinstance(load_odometry(None, np.eye(4)), LidarOdometry)
+    assert isinstance(load_odometry("kiss-icp", np.eye(4)), LidarOdometry)
+
+
+def test_the_wheel_only_odometry_gives_the_wheels_pose_with_map_at_the_first_sweep():
+    """Wheels report x = 2 + t (odom frame); map is base_link at the first sweep (t = 0.1)."""
+    from stack.wheel_odometry import WheelOnlyOdometry
+
+    T_base_lidar = pose_x(0.2)
+    pipe = DopeSlam(WheelOnlyOdometry(T_base_lidar), _Mustard(), T_BASE_CAM, DIMS)
+    assert pipe.on_scan(LidarScan(0.0, np.zeros((0, 3)), np.zeros(0))) is None  # no wheel odometry yet
+    for k in range(31):
+        t = 0.01 * k
+        pipe.on_wheel_odometry(WheelOdometry(t, pose_x(2.0 + t), 1.0, 0.0))
+        if k in (10, 20, 30):
+            pts = np.array([[1.0, 0.0, 0.0]])
+            pose = pipe.on_scan(LidarScan(t, pts, np.zeros(1)))
+            np.testing.assert_allclose(pose, pose_x(t - 0.1), atol=1e-12)
+        if k == 15:
+            pipe.on_image(image(t))
+    res = pipe.finish()
+    np.testing.assert_allclose(res.stamps, [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(res.T_map_base[:, 0, 3], [0.0, 0.1, 0.2], atol=1e-12)
+    (obj,) = res.store  # the image at 0.15, between the sweeps: interpolated
+    np.testing.assert_allclose(obj.xyz, expected_xyz(0.05), atol=1e-9)  # 1 m ahead of the camera at x = 0.05
+    np.testing.assert_allclose(res.map_points[0], [[1.2, 0.0, 0.0]], atol=1e-12)  # the sweep's points in map
+    assert res.store.floor is None
+
+
+class _Mustard:
+    def detect(self, frame):
+        from stack.messages import Detection
+
+        T = np.eye(4)
+        T[2, 3] = 1.0
+        return [Detection("Mustard", frame.stamp, T, np.zeros((9, 2)), np.ones(9), 2.0)]
 
 
 def test_the_harness_loop_closing_is_a_loop_closer():
@@ -115,6 +160,20 @@ class NeedsArguments:
     def detect(self, frame):
         return []
 
+class StandingStill:
+    """A user's odometry: the robot never moves (map = base_link throughout)."""
+    def __init__(self, T_base_lidar):
+        self.T_base_lidar = T_base_lidar
+        self.stamps = []
+    def process(self, scan):
+        self.stamps.append(scan.stamp)
+        return np.eye(4)
+    def pose_at(self, t):
+        return np.eye(4) if self.stamps and self.stamps[0] <= t <= self.stamps[-1] + 0.1 else None
+    def trajectory(self):
+        return np.array(self.stamps), np.tile(np.eye(4), (len(self.stamps), 1, 1))
+
+
 def first_observation(observations):
     """A user's labelling policy: the first observation is the label."""
     from stack.object_store import Label
@@ -159,6 +218,97 @@ def test_a_user_policy_loaded_by_import_path_labels_the_store(user_module):
         assert resolve_policy("robust-mean") == "robust-mean"
     finally:
         POLICIES.pop(name, None)
+
+
+def test_a_user_odometry_loaded_by_import_path_is_given_the_lidar_mounting_and_drives_the_pipeline(user_module):
+    T_base_lidar = pose_x(0.3)
+    odom = load_odometry(f"{user_module}:StandingStill", T_base_lidar)
+    assert isinstance(odom, Odometry) and np.array_equal(odom.T_base_lidar, T_base_lidar)
+    pipe = DopeSlam(odom, load_detector(f"{user_module}:MustardAhead"), T_BASE_CAM, DIMS)
+    pipe.on_scan(scan(0.0))
+    pipe.on_image(image(0.05))
+    pipe.on_scan(scan(0.1))
+    res = pipe.finish()
+    (obj,) = res.store
+    np.testing.assert_allclose(obj.xyz, expected_xyz(0.0), atol=1e-12)  # the robot stood at the origin
+    np.testing.assert_allclose(res.stamps, [0.0, 0.1])
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("user_parts:MustardAhead", "class MustardAhead has no process, pose_at, trajectory method"),
+    ("user_parts:NeedsArguments", "has no process, pose_at, trajectory method"),
+    ("no-such-odometry", "expected one of ['kiss-icp', 'wheel'] or MODULE:ATTRIBUTE"),
+    ("user_parts:first_observation", "constructing it with T_base_lidar failed"),
+])
+def test_a_bad_odometry_is_one_line_and_exit_status_2(user_module, spec, message, capsys):
+    with pytest.raises(ImportPathError, match=re.escape(message)):
+        load_odometry(spec, np.eye(4))
+    if "constructing" in message:
+        odometry_factory(spec)  # the name is fine; only constructing it fails
+        return
+    for command in (["run"], ["replay", "no-such.bag"], ["loop-closure"]):
+        assert main([*command, "--odometry", spec, "--out", "unused"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"dopeslam {command[0]}: --odometry {spec!r}: ") and message in err and "\n" not in err
+
+
+# --- components an installed package registers by name (entry points) ---------------------------------
+
+ENTRY_POINTS = """
+[dopeslam.detectors]
+mustard-ahead = user_parts:MustardAhead
+
+[dopeslam.odometry]
+standing-still = user_parts:StandingStill
+
+[dopeslam.policies]
+first-seen = user_parts:first_observation
+"""
+
+
+@pytest.fixture
+def installed_plugin(user_module, tmp_path):
+    """A package installed on sys.path that registers a detector, an odometry and a policy."""
+    import importlib
+
+    info = tmp_path / "dopeslam_user_parts-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: dopeslam-user-parts\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(ENTRY_POINTS)
+    importlib.invalidate_caches()
+    yield user_module
+    POLICIES.pop("first-seen", None)
+
+
+def test_components_registered_by_an_installed_package_load_by_name(installed_plugin):
+    assert entry_point_names("detector") == ["mustard-ahead"]
+    assert entry_point_names("odometry") == ["standing-still"] and entry_point_names("policy") == ["first-seen"]
+    detector = load_detector("mustard-ahead")
+    odom = load_odometry("standing-still", pose_x(0.3))
+    assert type(detector).__name__ == "MustardAhead" and type(odom).__name__ == "StandingStill"
+    assert resolve_policy("first-seen") == "first-seen" and POLICIES["first-seen"].__name__ == "first_observation"
+    pipe = DopeSlam(odom, detector, T_BASE_CAM, DIMS, policy="first-seen")
+    pipe.on_scan(scan(0.0))
+    pipe.on_image(image(0.05))
+    pipe.on_scan(scan(0.1))
+    assert [m.cls for m in pipe.finish().store] == ["Mustard"]
+
+
+def test_an_unknown_name_lists_the_installed_ones(installed_plugin):
+    with pytest.raises(ImportPathError, match=re.escape("expected one of ['mustard-ahead'] or MODULE:ATTRIBUTE")):
+        load_detector("no-such-detector")
+    with pytest.raises(ImportPathError, match=re.escape("'kiss-icp', 'standing-still', 'wheel'")):
+        load_odometry("no-such-odometry", np.eye(4))
+    with pytest.raises(ImportPathError, match="first-seen"):
+        resolve_policy("no-such-policy")
+
+
+def test_a_registered_name_whose_module_fails_is_one_line(installed_plugin, tmp_path):
+    (tmp_path / "dopeslam_user_parts-1.0.dist-info" / "entry_points.txt").write_text(
+        "[dopeslam.detectors]\nbroken = no_such_module_anywhere:Thing\n")
+    with pytest.raises(ImportPathError, match="loading entry point 'no_such_module_anywhere:Thing' failed: "
+                                              "ModuleNotFoundError"):
+        load_detector("broken")
 
 
 @pytest.mark.parametrize("spec, message", [

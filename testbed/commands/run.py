@@ -107,7 +107,9 @@ def check_loop_closure(enabled: bool, command: str) -> int | None:
     return None
 
 
-def register(sub) -> None:
+def add_odometry_option(p: argparse.ArgumentParser) -> None:
+    """``--odometry NAME|MODULE:CLASS`` on every command that runs the stack."""
+    p.add_argument("--odometry", def register(sub) -> None:
     p = sub.add_parser("run", help="the main job: a scored drive-through episode (report, labels.xlsx, map.png)")
     p.add_argument("scenario", nargs="?", default=None, help="bundled name or TOML path (default: the default scenario)")
     p.add_argument("--out", default="out/run")
@@ -124,6 +126,7 @@ def register(sub) -> None:
                         "testbed.oracle_detector:OracleDetector")
     p.add_argument("--loop-closure", action="store_true",
                    help="close loops (vocabulary tree + LiDAR verification + pose graph); labels move with them")
+    add_odometry_option(p)
     add_dope_options(p, defaults=False, unset=CONFIG_DEFAULT)
     add_config_options(p)
     add_dynamic_options(p)
@@ -145,7 +148,7 @@ def run(args) -> int:
     import sys
 
     from stack.config import ConfigError
-    from stack.interfaces import ImportPathError, load_detector, resolve_policy
+    from stack.interfaces import ImportPathError, load_detector, odometry_factory, resolve_policy
     from testbed.run import print_summary, run_episode
 
     try:
@@ -155,6 +158,8 @@ def run(args) -> int:
     try:
         policy = resolve_policy(config.store.policy)
         detector = load_detector(config.components.detector) if config.components.detector else None
+        odometry = config.components.odometry
+        odometry_factory(odometry)
     except ImportPathError as e:
         print(f"dopeslam run: --{e}", file=sys.stderr)  # "--detector 'x:Y': what is wrong"
         return 2
@@ -173,9 +178,12 @@ def run(args) -> int:
         with watching(view):
             report = run_episode(r.scenario, args.out, r.seed, r.light, policy=policy, duration=r.duration,
                                  detector=detector, config=config, faults=args.faults,
-                                 store=args.store, retire=args.retire)
+                                 store=args.store, retire=args.retire, odometry=odometry)
     except ConfigError as e:
         return config_error("run", e)
+    except ImportPathError as e:  # the odometry's constructor failed
+        print(f"dopeslam run: --{e}", file=sys.stderr)
+        return 2
     print_summary(report)
     print(f"wrote {args.out}/report.json, config.toml, labels.xlsx, map.png, estimate_tum.txt, groundtruth_tum.txt")
     return 0

@@ -21,8 +21,9 @@ No pickle: plain arrays and JSON. A file whose spec differs from the one asked f
 or the format version) is rebuilt; writes are atomic (temporary file, then ``os.replace``), and
 a lock file keeps two processes from building the same episode at once.
 
-:class:`LivePerception` is the pipeline itself, one fused camera frame at a time; the builder
-drains it, the active-labelling env steps it while the policy drives.
+:class:`LivePerception` drives the stack's pipeline (:class:`stack.pipeline.DopeSlam`) and hands
+over one fused camera frame at a time; the builder drains it, the active-labelling env steps it
+while the policy drives.
 """
 from __future__ import annotations
 
@@ -43,9 +44,8 @@ from typing import Callable, Iterator
 import cv2
 import numpy as np
 
-from stack.fusion import fuse
 from stack.messages import CameraFrame, Detection, LidarScan
-from stack.transforms import interpolate_trajectory, inv, transform_points
+from stack.transforms import interpolate_trajectory, inv
 
 log = logging.getLogger(__name__)
 
@@ -171,17 +171,20 @@ def visual(frame: CameraFrame, input_mode: str) -> np.ndarray | None:
 
 
 class LivePerception:
-    """Runs an episode through the stack and yields :class:`FusedFrame` in time order.
+    """Runs an episode through the stack's pipeline (:class:`stack.pipeline.DopeSlam`) and yields
+    :class:`FusedFrame` in time order, each once the pipeline fused it.
 
-    As in ``dopeslam run``, a camera frame waits until the odometry has a pose after its stamp
-    (the next LiDAR sweep) and is fused with the interpolated pose; the last frames are fused
-    with the odometry's short extrapolation when the episode ends. Detections before the first
-    scan (no pose at all) are dropped, as there.
+    The pipeline's rule for images: a camera frame waits until the odometry has a pose after its
+    stamp (the next LiDAR sweep) and is fused with the interpolated pose; the last frames are fused
+    with the odometry's short extrapolation when the episode ends; detections without a pose are
+    dropped (``dropped_no_pose``). Every kept stage count's detections of a frame are fused with its
+    one pose; the labelling env keeps its own map, so the pipeline's object store stays empty.
     """
 
     def __init__(self, episode, detector, classes: list[str], input_mode: str = "rgb",
                  stages: tuple = (6,), keep_images: bool = True):
         from stack.lidar_slam import LidarOdometry
+        from stack.pipeline import DopeSlam
 
         self.ep = episode
         self.detector = detector
@@ -192,10 +195,24 @@ class LivePerception:
         self.odom = LidarOdometry(episode.T_base_velodyne)
         self.T_base_cam = episode.T_base_camera
         self.T_cam_base = inv(self.T_base_cam)
+        self.pipeline = DopeSlam(self.odom, None, self.T_base_cam, {}, on_fused_image=self._on_fused,
+                                 map_objects=False)
         self.n_frames = 0
-        self.dropped_no_pose = 0
-        self.map_points: list[np.ndarray] = []
         self.last_camera_frame: CameraFrame | None = None
+        self._waiting: dict[int, dict] = {}  # frame index -> what the FusedFrame needs besides the fusion
+        self._ready: deque = deque()  # fused frames not yet yielded
+        self._map_xy: list[np.ndarray] = []
+
+    @property
+    def dropped_no_pose(self) -> int:
+        return self.pipeline.unposed
+
+    @property
+    def map_points(self) -> list[np.ndarray]:
+        """The LiDAR map so far, (x, y) in ``map`` of the points 0.05-2 m above ``base_link``, float32."""
+        for pts in self.pipeline.map_points[len(self._map_xy):]:
+            self._map_xy.append(pts[(pts[:, 2] > 0.05) & (pts[:, 2] < 2.0), :2].astype(np.float32))
+        return self._map_xy
 
     def _detect(self, frame: CameraFrame) -> dict[int, list[Detection]]:
         if len(self.stages) > 1 or hasattr(self.detector, "detect_stages"):
@@ -209,53 +226,50 @@ class LivePerception:
             return {s: by_stage[s] for s in self.stages}
         return {self.stages[0]: self.detector.detect(frame)}
 
-    def _fuse(self, rec: dict) -> FusedFrame:
-        pose = self.odom.pose_at(rec["stamp"])
+    def _on_fused(self, fi) -> None:
+        """A frame the pipeline fused (``stack.pipeline.FusedImage``) -> a :class:`FusedFrame`."""
+        rec = self._waiting.pop(fi.index)
+        rows: dict[int, list] = {s: [] for s in self.stages}
+        for s, det, obs in zip(rec["stage_of"], fi.detections, fi.observations):
+            if obs is None:
+                continue
+            if det.cls not in self.class_index:
+                raise ValueError(f"detector returned class {det.cls!r}; expected one of {sorted(self.class_index)}")
+            kp = np.asarray(det.keypoints_px, dtype=np.float32).reshape(9, 2)
+            rows[s].append((self.class_index[det.cls], obs.xyz, obs.quat_xyzw, obs.belief_sum, obs.fpr_pass,
+                            obs.range_m, kp, obs.cam_xyz))
         out = {}
-        for s, dets in rec["dets"].items():
-            rows = []
-            for det in dets:
-                if pose is None:
-                    self.dropped_no_pose += 1
-                    continue
-                if det.cls not in self.class_index:
-                    raise ValueError(f"detector returned class {det.cls!r}; expected one of {sorted(self.class_index)}")
-                obs = fuse(det, self.odom.pose_at, self.T_base_cam)
-                kp = np.asarray(det.keypoints_px, dtype=np.float32).reshape(9, 2)
-                rows.append((self.class_index[det.cls], obs.xyz, obs.quat_xyzw, obs.belief_sum, obs.fpr_pass,
-                             obs.range_m, kp, obs.cam_xyz))
+        for s, stage_rows in rows.items():
             arrs = _empty_dets()
-            if rows:
-                for k, col in zip(DET_FIELDS, zip(*rows)):
+            if stage_rows:
+                for k, col in zip(DET_FIELDS, zip(*stage_rows)):
                     arrs[k] = np.asarray(col, dtype=DET_FIELDS[k][0])
             out[s] = arrs
-        return FusedFrame(rec["index"], rec["stamp"], pose, rec["T_world_base"], out, rec["image"], rec["seconds"])
+        self._ready.append(FusedFrame(fi.index, fi.stamp, fi.T_map_base, rec["T_world_base"], out, rec["image"],
+                                      rec["seconds"]))
 
     def frames(self, on_scan: Callable[[LidarScan], None] | None = None) -> Iterator[FusedFrame]:
-        pending: deque = deque()
         for msg in self.ep.frames():
-            if isinstance(msg, LidarScan):
-                pose = self.odom.process(msg)
-                if on_scan is not None:
-                    on_scan(msg)
-                if pose is not None and len(self.odom) % 5 == 1 and self.odom.last_points_base is not None:
-                    pts = transform_points(pose, self.odom.last_points_base[::4])
-                    self.map_points.append(pts[(pts[:, 2] > 0.05) & (pts[:, 2] < 2.0), :2].astype(np.float32))
-                if len(self.odom):
-                    upto = self.odom.trajectory()[0][-1]
-                    while pending and pending[0]["stamp"] <= upto:
-                        yield self._fuse(pending.popleft())
-            elif isinstance(msg, CameraFrame):
+            if isinstance(msg, CameraFrame):
                 self.last_camera_frame = msg
                 t0 = time.perf_counter()
-                dets = self._detect(msg)
+                by_stage = self._detect(msg)
                 seconds = time.perf_counter() - t0
                 image = visual(msg, self.input_mode) if self.keep_images else None
-                pending.append({"index": self.n_frames, "stamp": float(msg.stamp), "dets": dets, "image": image,
-                                "seconds": seconds, "T_world_base": msg.T_world_camera @ self.T_cam_base})
+                self._waiting[self.n_frames] = {
+                    "stage_of": [s for s, dets in by_stage.items() for _ in dets], "image": image,
+                    "seconds": seconds, "T_world_base": msg.T_world_camera @ self.T_cam_base}
                 self.n_frames += 1
-        while pending:
-            yield self._fuse(pending.popleft())
+                self.pipeline.on_image(msg, [d for dets in by_stage.values() for d in dets])
+            else:
+                self.pipeline.on_message(msg)
+                if on_scan is not None and isinstance(msg, LidarScan):
+                    on_scan(msg)
+            while self._ready:
+                yield self._ready.popleft()
+        self.pipeline.finish()
+        while self._ready:
+            yield self._ready.popleft()
 
 
 # --- Building and loading the cache -----------------------------------------------------------------
