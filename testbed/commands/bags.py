@@ -1,10 +1,11 @@
 """``dopeslam record [SCENARIO] --bag PATH [--format ros1|ros2] [--storage sqlite3|mcap] --seed N [--duration S]``
 and ``dopeslam replay BAG --out DIR [--lidar-topic T] [--rgb-topic T] [--depth-topic T] [--camera-info-topic T]
-[--input rgb|depth] [--fpr/--no-fpr] [--stages 1-6] [--weights W] [--policy P]``."""
+[--input rgb|depth] [--fpr/--no-fpr] [--stages 1-6] [--weights W] [--policy P] [--detector MODULE:CLASS]
+[--odometry NAME|MODULE:CLASS]``."""
 from __future__ import annotations
 
 from testbed.commands.options import REPLAY_APPLIES, add_config_options, config_error, config_from_args
-from testbed.commands.run import CONFIG_DEFAULT, add_dope_options
+from testbed.commands.run import CONFIG_DEFAULT, add_dope_options, add_odometry_option
 
 
 def register(sub) -> None:
@@ -24,7 +25,7 @@ def register(sub) -> None:
     p.set_defaults(func=record)
 
     p = sub.add_parser("replay", help="run the stack offline on a rosbag (ours or a real robot's): "
-                                      "odometry pass, DOPE pass, fusion; report, labels.xlsx, map.png")
+                                      "report, labels.xlsx, map.png")
     p.add_argument("bag", help="ROS 1 .bag file, ROS 2 bag directory, or .mcap/.db3 file")
     p.add_argument("--out", default="out/replay")
     p.add_argument("--lidar-topic", default=None, help="PointCloud2 topic (default /velodyne_points or the only one)")
@@ -33,9 +34,13 @@ def register(sub) -> None:
     p.add_argument("--camera-info-topic", default=None, help="CameraInfo of the colour stream")
     p.add_argument("--policy", default=None,
                    help="labelling policy: last, last-fpr, best-score, robust-mean (default), ..., or MODULE:FUNCTION")
+    p.add_argument("--detector", default=None, metavar="MODULE:CLASS",
+                   help="your detector instead of DOPE (a class constructed with no arguments, with "
+                        "detect(frame) -> list[Detection]); --input, --stages, --fpr and --weights then do not apply")
+    add_odometry_option(p)
     p.add_argument("--dope-every", type=int, default=None, help="run DOPE on every N-th image (default 1)")
     p.add_argument("--sequential", action="store_true",
-                   help="run the odometry and DOPE passes one after the other (default: at the same time)")
+                   help="run the detector in the message loop (default: ahead of it, on a second reader in a thread)")
     p.add_argument("--results-bag", default=None, help="where the results bag goes (default OUT/results_bag); "
                    "an existing path is refused unless --force, the input bag always")
     p.add_argument("--force", action="store_true", help="replace an existing --results-bag")
@@ -105,7 +110,7 @@ def replay(args) -> int:
     import sys
 
     from stack.config import ConfigError
-    from stack.interfaces import ImportPathError, load_detector, resolve_policy
+    from stack.interfaces import ImportPathError, load_detector, odometry_factory, resolve_policy
     from testbed.commands.options import finish_outputs, refuse_unapplied
     from testbed.replay import BagTopics, print_replay_summary, replay_bag
     from testbed.run import make_detector
@@ -113,14 +118,13 @@ def replay(args) -> int:
     try:
         config = config_from_args(args)  # [run] is the simulator's: read, not used here
         refuse_unapplied(config, REPLAY_APPLIES, "replay")
-        if config.components.odometry:
-            raise ConfigError("key 'components.odometry': dopeslam replay runs KISS-ICP only")
     except ConfigError as e:
         return config_error("replay", e)
     d, c = config.detector, config.components
     try:
         policy = resolve_policy(config.store.policy)
         detector = load_detector(c.detector) if c.detector else make_detector(d.input, d.stages, d.fpr, config=d)
+        odometry_factory(c.odometry)
     except ImportPathError as e:
         print(f"dopeslam replay: --{e}", file=sys.stderr)
         return 2
@@ -134,11 +138,15 @@ def replay(args) -> int:
                        base_frame=args.base_frame, T_base_lidar=parse_pose(args.T_base_lidar, "--T-base-lidar"),
                        T_base_camera=parse_pose(args.T_base_camera, "--T-base-camera"),
                        max_bad_messages=args.max_bad_messages)
-    report = replay_bag(args.bag, args.out, input_mode=d.input, stages=d.stages, fpr=d.fpr,
-                        weights=d.weights, policy=policy, topics=topics, dope_every=d.every,
-                        parallel=not args.sequential, results_bag=args.results_bag,
-                        loop_closure=config.loop_closure.enabled, vocabulary=config.loop_closure.vocabulary,
-                        detector=detector)
+    try:
+        report = replay_bag(args.bag, args.out, input_mode=d.input, stages=d.stages, fpr=d.fpr,
+                            weights=d.weights, policy=policy, topics=topics, dope_every=d.every,
+                            parallel=not args.sequential, results_bag=args.results_bag,
+                            loop_closure=config.loop_closure.enabled, vocabulary=config.loop_closure.vocabulary,
+                            detector=detector, odometry=c.odometry)
+    except ImportPathError as e:  # the odometry's constructor failed
+        print(f"dopeslam replay: --{e}", file=sys.stderr)
+        return 2
     finish_outputs(config.stack(), args.out, report, detector, seed=report.get("seed"))
     args.json_result = report  # --json (testbed/cli.py)
     print_replay_summary(report)
