@@ -24,7 +24,7 @@ from stack.object_store import ObjectStore
 from stack.pipeline import DopeSlam
 from stack.transforms import transform_points
 from testbed.scoring import score_map, summary_line
-from testbed.io import write_json
+from testbed.io import edited_objects, output_dir, write_json
 
 log = logging.getLogger(__name__)
 
@@ -165,7 +165,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     from sim.objects import load_catalog
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    kept = edited_objects(out) if write_outputs else []  # checked before any work starts
     if config is not None:
         d = config.detector
         input_mode, stages, fpr, weights, dope_every = d.input, d.stages, d.fpr, d.weights, d.every
@@ -271,22 +271,24 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
             w, t = detector_files(detector)
             report["provenance"] = provenance(ep.seed, getattr(ep.sc, "source", None), w, t)
-        if write_outputs:
-            if config is not None:
-                from stack.config import write_config
+        if write_outputs:  # into a hidden sibling, renamed into place whole; report.json last
+            with output_dir(out) as stage:
+                store.keep_edited(kept)  # rows a person marked edited in the folder's store files
+                if config is not None:
+                    from stack.config import write_config
 
-                write_config(config, out / "config.toml")
-            write_json(out / "report.json", report)
-            dyn.save_store(store)
-            store.save(out / "labels.xlsx", overwrite=True)
-            store.save(out / "labels.json", overwrite=True)
-            write_tum(out / "estimate_tum.txt", stamps, T_world_map @ poses)
-            write_tum(out / "groundtruth_tum.txt", stamps, ep.T_world_base_at(stamps))
-            _map_png(out / "map.png", ep, T_world_map, poses, map_points, labels, report)
-            from testbed.record import RESULTS_BAG_NAME, write_results_bag
+                    write_config(config, stage / "config.toml")
+                dyn.save_store(store)
+                store.save(stage / "labels.xlsx")
+                store.save(stage / "labels.json")
+                write_tum(stage / "estimate_tum.txt", stamps, T_world_map @ poses)
+                write_tum(stage / "groundtruth_tum.txt", stamps, ep.T_world_base_at(stamps))
+                _map_png(stage / "map.png", ep, T_world_map, poses, map_points, labels, report)
+                from testbed.record import RESULTS_BAG_NAME, write_results_bag
 
-            write_results_bag(results_bag or out / RESULTS_BAG_NAME, store, map_points, stamps, poses,
-                              T_world_map=T_world_map, objects=ep.objects)
+                write_results_bag(results_bag or stage / RESULTS_BAG_NAME, store, map_points, stamps, poses,
+                                  T_world_map=T_world_map, objects=ep.objects)
+                write_json(stage / "report.json", report)
         if keep_detections:
             report["_detections"] = all_dets
             report["_store"] = store
