@@ -29,6 +29,11 @@ NEAR, FAR = 0.05, 30.0
 
 @lru_cache(maxsize=1)
 def hardware() -> dict:
+    """The figures of ``sim/data/hardware.toml`` as a dict, checked by the typed spec
+    (``sim.sensors.hardware_spec``, which the sensor models here read) first."""
+    from sim.sensors import hardware_spec
+
+    hardware_spec()  # a missing, unknown or mistyped figure fails here, named
     with open(HARDWARE_TOML, "rb") as f:
         return tomllib.load(f)
 
@@ -44,16 +49,20 @@ class DepthNoise:
 
     @staticmethod
     def from_hardware() -> "DepthNoise":
-        h = hardware()["d435i"]
-        return DepthNoise(h["depth_fx"], h["baseline"], h["subpixel"], h["depth_min"], h["depth_max"])
+        from sim.sensors import hardware_spec
+
+        h = hardware_spec().d435i
+        return DepthNoise(h.depth_fx, h.baseline, h.subpixel, h.depth_min, h.depth_max)
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
         return z * z * self.subpixel / (self.depth_fx * self.baseline)
 
 
 def default_camera_info(width: int | None = None, height: int | None = None) -> CameraInfo:
-    h = hardware()["d435i"]
-    info = CameraInfo.from_fov(h["width"], h["height"], h["fx"], h["fy"])
+    from sim.sensors import hardware_spec
+
+    h = hardware_spec().d435i
+    info = CameraInfo.from_fov(h.width, h.height, h.fx, h.fy)
     if width and height and (width, height) != (info.width, info.height):
         info = info.scaled(width, height)
     return info

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.camera import hardware
+from sim.sensors import hardware_spec
 
 
 @dataclass
@@ -28,9 +28,9 @@ class BeamPattern:
 
     @staticmethod
     def from_hardware(azimuth_steps: int | None = None, rate: float | None = None) -> "BeamPattern":
-        h = hardware()["velodyne"]
-        return BeamPattern(np.array(h["vertical_deg"], dtype=float), int(azimuth_steps or h["azimuth_steps"]),
-                           float(rate or h["rate"]), h["range_min"], h["range_max"], h["range_noise"])
+        h = hardware_spec().velodyne
+        return BeamPattern(np.array(h.vertical_deg, dtype=float), int(azimuth_steps or h.azimuth_steps),
+                           float(rate or h.rate), h.range_min, h.range_max, h.range_noise)
 
     @property
     def period(self) -> float:
