@@ -1,0 +1,243 @@
+"""Where the main job's CPU goes, stage by stage, beside the floor each stage could reach on this CPU.
+
+Runs one episode as ``dopeslam run`` does (RGB, 6 stages, FPR; the camera rendered in this process so
+its cost is counted) with a CPU-time meter (``time.process_time``: this process's CPU time, all its
+threads, far less affected by other busy processes than wall time) around each stage:
+
+- simulation: physics, the route follower, ground truth and the harness's own bookkeeping (the rest);
+- rendering: the camera (PyBullet's renderer, RGB + depth + segmentation, then the D435i's noise);
+- LiDAR: the analytic ray caster;
+- odometry: ``stack.lidar_slam.LidarOdometry.process`` (KISS-ICP plus the floor fit);
+- DOPE network: the forward pass;
+- depth fit + FPR: input scaling, peak decoding, PnP, the depth fit, FPR and the colour check;
+- fusion: the pipeline's fusion of detections into the map and the evidence gate.
+
+The floors, measured on the same machine and the same data:
+
+- rendering: ``p.getCameraImage`` alone for one frame at the camera's size (no noise, no copies),
+  with and without the segmentation mask, times the camera rate;
+- DOPE network: its FLOPs (``torch.utils.flop_counter``) per image at this CPU's measured fp32
+  matmul GFLOP/s (a 1024^3 ``torch.mm`` with the same torch threads), times the images per second;
+- odometry: KISS-ICP's own ``KissICP.register_frame`` on the same sweeps (the points the simulator
+  gave), times the sweep rate.
+
+    python benchmarks/bench_stages.py [--scenario NAME] [--duration S] [--seed N] [--set FIELD=VALUE]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+STAGES = ("simulation", "rendering", "lidar", "odometry", "network", "fit_fpr", "fusion")
+LABELS = {"simulation": "simulation (physics, ground truth, harness)", "rendering": "rendering (RGB + depth + seg, noise)",
+          "lidar": "LiDAR ray casting", "odometry": "KISS-ICP odometry (+ floor fit)", "network": "DOPE network",
+          "fit_fpr": "depth fit + FPR (+ decode, PnP, colour check)", "fusion": "fusion + evidence"}
+
+
+class Meter:
+    """CPU seconds per stage; a stage's time excludes the stages metered inside it."""
+
+    def __init__(self):
+        self.cpu = dict.fromkeys(STAGES, 0.0)
+        self.calls = dict.fromkeys(STAGES, 0)
+        self._stack: list[list] = []  # [stage, start, inner seconds]
+
+    def wrap(self, owner, name: str, stage: str) -> None:
+        fn = getattr(owner, name)
+        meter = self
+
+        def timed(*a, **k):
+            meter._stack.append([stage, time.process_time(), 0.0])
+            try:
+                return fn(*a, **k)
+            finally:
+                st, t0, inner = meter._stack.pop()
+                dt = time.process_time() - t0
+                meter.cpu[st] += dt - inner
+                meter.calls[st] += 1
+                if meter._stack:
+                    meter._stack[-1][2] += dt
+
+        timed.__wrapped__ = fn
+        setattr(owner, name, timed)
+
+
+def matmul_gflops(n: int = 1024, repeats: int = 5) -> float:
+    """Best fp32 GFLOP/s of an n^3 matrix product with torch's current thread count (CPU time)."""
+    import torch
+
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    torch.mm(a, b)
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.process_time()
+        torch.mm(a, b)
+        best = min(best, time.process_time() - t0)
+    return 2.0 * n ** 3 / max(best, 1e-9) / 1e9
+
+
+def network_flops(detector) -> int:
+    """FLOPs of one forward pass of the detector's network on one image at its input size."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    w, h = detector.input_size
+    x = torch.zeros(1, 3, h, w, dtype=next(detector.model.parameters()).dtype)
+    with torch.no_grad(), FlopCounterMode(display=False) as fc:
+        detector.model(x, detector.stages)
+    return int(fc.get_total_flops())
+
+
+def render_floor(client: int, renderer: int, T_world_cam, info, repeats: int = 5) -> tuple[float, float]:
+    """Best CPU seconds of ``getCameraImage`` alone for one frame: (with segmentation, without)."""
+    import pybullet as p
+
+    from sim.camera import gl_matrices
+
+    view, proj = gl_matrices(T_world_cam, info)
+    out = []
+    for flags in (0, p.ER_NO_SEGMENTATION_MASK):
+        best = float("inf")
+        for _ in range(repeats):
+            t0 = time.process_time()
+            p.getCameraImage(info.width, info.height, view, proj, renderer=renderer, flags=flags,
+                             physicsClientId=client)
+            best = min(best, time.process_time() - t0)
+        out.append(best)
+    return out[0], out[1]
+
+
+def kiss_floor(scans, config) -> float:
+    """CPU seconds per sweep of KISS-ICP's own ``register_frame`` on the same sweeps."""
+    import numpy as np
+    from kiss_icp.kiss_icp import KissICP
+
+    icp = KissICP(config.to_kiss())
+    t0 = time.process_time()
+    for s in scans:
+        ts = np.asarray(s.times_s, dtype=np.float64)
+        span = float(np.ptp(ts)) if ts.size else 0.0
+        icp.register_frame(np.asarray(s.points, dtype=np.float64), (ts - ts.min()) / span if span > 0 else ts)
+    return (time.process_time() - t0) / max(len(scans), 1)
+
+
+def measure(scenario=None, duration=None, seed=0) -> dict:
+    os.environ.setdefault("DOPESLAM_RENDER_WORKER", "0")  # render here, so the rendering's CPU is counted
+    from sim.episode import Episode
+    from stack.dope_fpr import DopeDetector
+    from stack.lidar_slam import LidarOdometry
+    from stack.pipeline import DopeSlam
+    from testbed.run import run_episode
+
+    meter = Meter()
+    scans, frames, handles = [], [], {}
+    meter.wrap(Episode, "_camera_frame", "rendering")
+    meter.wrap(Episode, "_lidar_scan", "lidar")
+    meter.wrap(LidarOdometry, "process", "odometry")
+    meter.wrap(DopeDetector, "_forward", "network")
+    meter.wrap(DopeDetector, "detect", "fit_fpr")
+    meter.wrap(DopeSlam, "_fuse_image", "fusion")
+    orig_close, orig_process, orig_detect = Episode.close, LidarOdometry.process, DopeDetector.detect
+
+    def close(self):  # the floors are measured on the episode's own world before it goes
+        if "floors" not in handles and "frame" in handles:
+            f = handles["frame"]
+            handles["floors"] = render_floor(self.client, self.renderer, f.T_world_camera, f.info)
+            handles["camera_rate"] = self.sc.sensors.camera_rate
+            handles["lidar_rate"] = 1.0 / self.beams.period
+        return orig_close(self)
+
+    def process(self, scan):
+        scans.append(scan)
+        handles.setdefault("odom_config", self.config)
+        return orig_process(self, scan)
+
+    def detect(self, frame):
+        frames.append(frame.stamp)
+        if len(frames) & (len(frames) - 1) == 0:  # the last power-of-two'th: in the episode's second half
+            handles["frame"] = frame
+        handles.setdefault("detector", self)
+        return orig_detect(self, frame)
+
+    Episode.close, LidarOdometry.process, DopeDetector.detect = close, process, detect
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            w0, c0 = time.perf_counter(), time.process_time()
+            r = run_episode(scenario, out_dir=tmp, seed=seed, duration=duration, write_outputs=False)
+            cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+    finally:
+        Episode.close, LidarOdometry.process, DopeDetector.detect = orig_close, orig_process, orig_detect
+        for owner, name in ((Episode, "_camera_frame"), (Episode, "_lidar_scan"), (LidarOdometry, "process"),
+                            (DopeDetector, "_forward"), (DopeDetector, "detect"), (DopeSlam, "_fuse_image")):
+            setattr(owner, name, getattr(owner, name).__wrapped__)
+    sim_s = float(r["sim_seconds"])
+    meter.cpu["simulation"] = cpu - sum(v for k, v in meter.cpu.items() if k != "simulation")
+    det = handles.get("detector")
+    floors = {}
+    if "floors" in handles:
+        seg, noseg = handles["floors"]
+        floors["rendering"] = (seg * handles["camera_rate"], noseg * handles["camera_rate"])
+    if det is not None:
+        flops = network_flops(det)
+        gflops = matmul_gflops()
+        floors["network"] = flops / (gflops * 1e9) * len(frames) / sim_s
+    else:
+        flops = gflops = None
+    if scans:
+        floors["odometry"] = kiss_floor(scans, handles["odom_config"]) * len(scans) / sim_s
+    return {"sim_s": sim_s, "wall_s": wall, "cpu_s": cpu, "stages": meter.cpu, "calls": meter.calls,
+            "floors": floors, "flops": flops, "gflops": gflops, "images": len(frames), "scans": len(scans),
+            "labels": r["labels_summary"]}
+
+
+def table(m: dict) -> str:
+    sim = m["sim_s"]
+    fl = m["floors"]
+    lines = ["| stage | CPU s / sim s | floor, CPU s / sim s | stage / floor | floor measured as |",
+             "|---|---:|---:|---:|---|"]
+    how = {"rendering": "getCameraImage alone, with segmentation (without: {:.3f})",
+           "network": "{flops:.2f} GFLOP per image at {gf:.1f} GFLOP/s (fp32 matmul)",
+           "odometry": "KissICP.register_frame on the same sweeps"}
+    for st in STAGES:
+        v = m["stages"][st] / sim
+        f = fl.get(st)
+        if isinstance(f, tuple):
+            note, f = how[st].format(f[1]), f[0]
+        elif f is not None:
+            note = how[st].format(flops=(m["flops"] or 0) / 1e9, gf=m["gflops"] or 0)
+        else:
+            note = "-"
+        fs = "-" if f is None else f"{f:.3f}"
+        ratio = "-" if not f else f"{v / f:.1f}x"
+        lines.append(f"| {LABELS[st]} | {v:.3f} | {fs} | {ratio} | {note} |")
+    lines.append(f"| **all** | **{m['cpu_s'] / sim:.3f}** | | | wall {m['wall_s'] / sim:.2f} s / sim s |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default=None, help="bundled name or TOML (default: the default scenario)")
+    ap.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's, 60 s)")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    if args.duration is not None and args.duration <= 0:
+        print(f"--duration: expected seconds > 0, got {args.duration}", file=sys.stderr)
+        return 2
+    m = measure(args.scenario, args.duration, args.seed)
+    ls = m["labels"]
+    print(f"{m['sim_s']:.0f} s simulated, {m['images']} images, {m['scans']} sweeps; {m['cpu_s']:.1f} CPU s, "
+          f"{m['wall_s']:.1f} wall s; torch threads {os.environ.get('DOPESLAM_TORCH_THREADS', 'default')}; "
+          f"load average {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
+    print(f"map: {ls['labelled']}/{ls['objects']} labelled, {ls['false_labels']} false")
+    print(table(m))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
