@@ -46,18 +46,25 @@ Start with `dopeslam run` (a scored episode of the default scenario) and `dopesl
 EPILOG = "Progress bars go to stderr when it is a terminal (--quiet turns them off); results go to stdout."
 
 
+# what an unset (None) option means where its help does not say
+NONE_MEANS = {"seed": "the scenario's", "duration": "the scenario's", "light": "the scenario's"}
+_NO_HELP = "\u200b"  # stands for "no help text" (argparse drops blank help, and its default with it)
+
+
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Every option's help ends with its default, unless the help already says it."""
 
     def _get_help_string(self, action):
-        text = action.help or ""
+        text = (action.help or "").replace(_NO_HELP, "").strip()
         if action.default is argparse.SUPPRESS or "%(default)" in text or "default" in text.lower():
             return text
         if not action.option_strings and action.nargs not in ("?", "*"):
             return text  # a required positional has no default
         if action.nargs == 0 and action.default is False:
             shown = "off"
-        elif action.default is None or action.default == []:
+        elif action.default is None:
+            shown = NONE_MEANS.get(action.dest, "none")
+        elif action.default == []:
             shown = "none"
         else:
             shown = "%(default)s"
@@ -88,6 +95,11 @@ class CommandParser(argparse.ArgumentParser):
             # SUPPRESS: given after the command it sets args.quiet; absent, the top level's value stays
             self.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
                               help="no progress bars (they go to stderr, and only when it is a terminal)")
+
+    def add_argument(self, *args, **kwargs):
+        if kwargs.get("help") is None and args and str(args[0]).startswith("-"):
+            kwargs["help"] = _NO_HELP  # argparse shows no help line (so no default) for an option without help
+        return super().add_argument(*args, **kwargs)
 
 
 class _Version(argparse.Action):
