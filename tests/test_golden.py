@@ -1,6 +1,7 @@
 """One loop for every driver: ``dopeslam run`` and the gym env's perception cache drive the same
 pipeline (``stack.pipeline.DopeSlam``), so on one episode they fuse every detection with the same
-pose, bit for bit; and the golden-output comparison (``tests/golden_record.py``) finds any change.
+pose (to the last bits KISS-ICP's threads leave); and the golden-output comparison
+(``tests/golden_record.py``) finds any change.
 """
 from __future__ import annotations
 
@@ -82,6 +83,9 @@ def test_the_run_and_the_perception_cache_fuse_every_detection_with_the_same_pos
     cache_xyz = np.concatenate([f.detections[6]["xyz"] for f in frames])
     cache_cam = np.concatenate([f.detections[6]["cam"] for f in frames])
     assert len(run_xyz) >= 20, "the oracle should see the objects in this drive"
-    assert np.array_equal(cache_xyz, run_xyz) and np.array_equal(cache_cam, run_cam)
+    # equal up to the last bits KISS-ICP's multi-threaded sums leave from one run to the next (a
+    # different rule for an image's pose, e.g. extrapolated instead of interpolated, moves it by mm)
+    np.testing.assert_allclose(cache_xyz, run_xyz, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(cache_cam, run_cam, rtol=0, atol=1e-9)
     assert live.dropped_no_pose == report["detection"]["detections_without_pose"]
     assert len(stamps) == report["odometry"]["poses"]
