@@ -46,10 +46,10 @@ class SecondsBar:
     """Seconds of data (simulated, or a bag's) done out of a known span, with an ETA.
     ``update_to(t)`` with the latest message's time; ``postfix`` with counts."""
 
-    def __init__(self, total_s: float, desc: str, t0: float = 0.0):
+    def __init__(self, total_s: float, desc: str, t0: float = 0.0, unit: str = "s"):
         self.t0 = float(t0)
-        self._bar = bar(total=max(float(total_s), 1e-9), desc=desc, unit="s", bar_format=SIM_FORMAT,
-                        leave=_outer == 0)
+        fmt = SIM_FORMAT if unit == "s" else SIM_FORMAT.replace("{n:.1f}/{total:.1f} s", "{n:.0f}/{total:.0f} " + unit)
+        self._bar = bar(total=max(float(total_s), 1e-9), desc=desc, unit=unit, bar_format=fmt, leave=_outer == 0)
         self._last = 0.0
 
     def update_to(self, t: float, **postfix) -> None:
@@ -112,8 +112,9 @@ class EpisodeWatch:
     and the live views of :func:`watching`. ``truth``: the source's ground truth or None;
     ``pipe``: the stack's pipeline."""
 
-    def __init__(self, desc: str, duration_s: float, t0: float = 0.0, truth=None, pipe=None):
-        self.bar = SecondsBar(duration_s, desc, t0)
+    def __init__(self, desc: str, duration_s: float, t0: float = 0.0, truth=None, pipe=None, unit: str = "s"):
+        self.bar = SecondsBar(duration_s, desc, t0, unit)
+        self.unit = unit
         self.shown = not self.bar._bar.disable
         self.views = list(_views)
         self.pipe = pipe
@@ -132,8 +133,9 @@ class EpisodeWatch:
 
     def tick(self, t: float, **counts) -> None:
         self.bar.update_to(t, **counts)
-        for v in self.views:
-            v.tick(t)
+        if self.unit == "s":  # t is data time (else a count: the views keep time from the scans)
+            for v in self.views:
+                v.tick(t)
 
     def finish(self, store, T_world_map=None, map_labels=None) -> None:
         self.bar.close()

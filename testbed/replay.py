@@ -229,6 +229,10 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             stream = _merged(bag.frames(lidar=True, camera=False, odometry=True), ahead)
         else:
             stream = ((m.stamp, 0, m, None) for m in bag.frames(lidar=True, camera=True, odometry=True))
+        from testbed.progress import EpisodeWatch  # progress bar (scans) and live views (--view)
+
+        watch = EpisodeWatch(bag.path.name, bag.message_counts.get(bag.lidar_topic, 0), truth=bag.groundtruth,
+                             pipe=pipe, unit="scans")
         t_last = time.perf_counter()
         for _, _, msg, given in stream:
             read_s += time.perf_counter() - t_last
@@ -248,11 +252,14 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                         flags = None
                     if keep_detections:
                         all_dets.extend(dets if flags is None else zip(dets, flags))
+                watch.image(msg, dets, flags if dets is not None else None)
             else:
-                pipe.on_message(msg)
+                pose = pipe.on_message(msg)
                 if isinstance(msg, LidarScan):
                     scans += 1
-                    if scans % 100 == 0:
+                    watch.scan(msg, pose)
+                    watch.tick(scans, images=pipe.images, objects=len(pipe.store))
+                    if scans % 100 == 0 and not watch.shown:
                         log.info("t = %.1f s: %d scans, %d images, %d map objects", msg.stamp, scans,
                                  pipe.images, len(pipe.store))
             t_last = time.perf_counter()
@@ -315,11 +322,13 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         if gt is not None and gt.objects:
             labels, labels_summary = score_labels(store, gt.objects, T_world_map)
             report["labels"], report["labels_summary"] = labels, labels_summary
+            watch.finish(store, T_world_map, labels_summary.get("map_labels"))
             report["candidates"] = candidate_rows(store, T_world_map)
         else:
             report["labels"] = [{"id": m.id, "class": m.cls, "label_xyz_map": [float(v) for v in m.xyz],
                                  "observations": m.observations, "status": m.status, "reason": m.reason}
                                 for m in store]
+            watch.finish(store, T_world_map)
             report["labels_summary"] = {"map_objects": len(store), "labels_in_map": len(store.labels()),
                                         "candidates": len(store.candidates())}
 

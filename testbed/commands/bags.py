@@ -5,7 +5,7 @@ and ``dopeslam replay BAG --out DIR [--lidar-topic T] [--rgb-topic T] [--depth-t
 from __future__ import annotations
 
 from testbed.commands.options import REPLAY_APPLIES, add_config_options, config_error, config_from_args
-from testbed.commands.run import CONFIG_DEFAULT, add_dope_options, add_odometry_option
+from testbed.commands.run import CONFIG_DEFAULT, add_dope_options, add_odometry_option, add_view_options, open_view
 
 
 def register(sub) -> None:
@@ -58,6 +58,7 @@ def register(sub) -> None:
     add_dope_options(p, defaults=False, unset=CONFIG_DEFAULT)
     add_config_options(p)
     p.add_argument("--json", action="store_true", help="print the report (report.json's content) as JSON on stdout (logs on stderr)")
+    add_view_options(p)
     p.set_defaults(func=replay)
 
 
@@ -138,12 +139,22 @@ def replay(args) -> int:
                        base_frame=args.base_frame, T_base_lidar=parse_pose(args.T_base_lidar, "--T-base-lidar"),
                        T_base_camera=parse_pose(args.T_base_camera, "--T-base-camera"),
                        max_bad_messages=args.max_bad_messages)
+    from testbed.commands.run import check_loop_closure
+    from testbed.progress import watching
+
+    bad = check_loop_closure(config.loop_closure.enabled, "replay")
+    if bad is not None:
+        return bad
+    view, bad = open_view(args, "replay")
+    if bad is not None:
+        return bad
     try:
-        report = replay_bag(args.bag, args.out, input_mode=d.input, stages=d.stages, fpr=d.fpr,
-                            weights=d.weights, policy=policy, topics=topics, dope_every=d.every,
-                            parallel=not args.sequential, results_bag=args.results_bag,
-                            loop_closure=config.loop_closure.enabled, vocabulary=config.loop_closure.vocabulary,
-                            detector=detector, odometry=c.odometry)
+        with watching(view):
+            report = replay_bag(args.bag, args.out, input_mode=d.input, stages=d.stages, fpr=d.fpr,
+                                weights=d.weights, policy=policy, topics=topics, dope_every=d.every,
+                                parallel=not args.sequential, results_bag=args.results_bag,
+                                loop_closure=config.loop_closure.enabled, vocabulary=config.loop_closure.vocabulary,
+                                detector=detector, odometry=c.odometry)
     except ImportPathError as e:  # the odometry's constructor failed
         print(f"dopeslam replay: --{e}", file=sys.stderr)
         return 2
