@@ -214,10 +214,11 @@ class EpisodeRecorder:
 def record_episode(scenario=None, bag: Path | str = "out/episode", format: str | None = None,
                    storage: str = "mcap", seed: int | None = None, duration: float | None = None,
                    light: float | None = None, overwrite: bool = False, compress: bool = True,
-                   faults=()) -> dict:
+                   faults=(), images: str = "compressed") -> dict:
     """Run an episode (no stack) and write it to ``bag``; returns a summary with the timing.
     ``faults``: ``NAME=VALUE`` sensor faults over the scenario's ``[faults]`` (``sim.faults``): the
-    bag holds the messages as the faulty drivers publish them."""
+    bag holds the messages as the faulty drivers publish them. ``images``: ``compressed`` (lossless PNG
+    CompressedImage topics, ``testbed.bags.images``) or ``raw`` (sensor_msgs/Image)."""
     from sim.faults import FaultInjector, parse_overrides
 
     from sim.episode import Episode
@@ -225,7 +226,7 @@ def record_episode(scenario=None, bag: Path | str = "out/episode", format: str |
     bag = Path(bag)
     wall0 = time.perf_counter()
     with Episode(scenario, seed=seed, duration=duration, light=light) as ep:
-        writer = BagWriter(bag, format, storage, compress=compress, overwrite=overwrite)
+        writer = BagWriter(bag, format, storage, compress=compress, overwrite=overwrite, images=images)
         with writer:
             rec = EpisodeRecorder(writer, ep)
             last_log = time.perf_counter()

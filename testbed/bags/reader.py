@@ -37,9 +37,10 @@ from stack.messages import CameraFrame, CameraInfo, LidarScan, ObjectTruth, Whee
 from stack.transforms import interpolate_trajectory, inv
 
 from . import topics as T
+from . import images as IM
 from .convert import (COLOUR_ENCODINGS, DEPTH_ENCODINGS, TIME_FIELD_NAMES, Cuboid, PointTimeEncoding,
                       camera_info_from_msg, cloud_arrays, colour_to_rgb, cuboids_from_markers,
-                      decode_compressed, depth_to_metres, distortion_of, image_array, infer_time_encoding,
+                      depth_to_metres, distortion_of, image_array, infer_time_encoding,
                       normalize_frame, pose_T, time_ns, times_after_stamp, transform_T,
                       wheel_odometry_from_msg)
 from .errors import (BagError, BagReadError, CorruptBagError, MissingExtrinsicError, MissingTopicError,
@@ -489,7 +490,7 @@ class BagReader:
         images = (IMAGE, COMPRESSED_IMAGE)
         self.rgb_topic = self._pick("rgb", req["rgb"], images, T.RGB_CANDIDATES,
                                     lambda n: ("color" in n or "rgb" in n) and "depth" not in n)
-        self.depth_topic = self._pick("depth", req["depth"], (IMAGE,), T.DEPTH_CANDIDATES,
+        self.depth_topic = self._pick("depth", req["depth"], images, T.DEPTH_CANDIDATES,
                                       lambda n: "depth" in n and "aligned" in n)
         if self.require_camera and not (self.rgb_topic or self.depth_topic):
             raise MissingTopicError(self.path, "camera image", f"{T.RGB} or {T.DEPTH} (sensor_msgs/Image)",
@@ -681,7 +682,7 @@ class BagReader:
         topic = self.rgb_topic or ""
         if not hasattr(msg, "encoding"):  # CompressedImage
             try:
-                rgb = decode_compressed(msg)
+                rgb = IM.decode_rgb(msg)
             except ValueError as exc:
                 raise UnsupportedEncodingError(self.path, topic, str(exc), "jpeg or png") from None
         else:
@@ -694,6 +695,13 @@ class BagReader:
 
     def _depth(self, msg: Any) -> np.ndarray:
         topic = self.depth_topic or ""
+        if not hasattr(msg, "encoding"):  # CompressedImage: image_transport's compressedDepth
+            try:
+                depth = depth_to_metres(IM.decode_depth_mm(msg), "16UC1")
+            except ValueError as exc:
+                raise UnsupportedEncodingError(self.path, topic, str(exc), "16UC1; compressedDepth png") from None
+            self._check_size(depth.shape, topic)
+            return depth
         if msg.encoding not in DEPTH_ENCODINGS:
             raise UnsupportedEncodingError(self.path, topic, f"depth encoding {msg.encoding!r}",
                                            "16UC1 (millimetres) or 32FC1 (metres)", self.topics)

@@ -14,6 +14,8 @@ RGB = "/camera/color/image_raw"
 RGB_INFO = "/camera/color/camera_info"
 DEPTH = "/camera/aligned_depth_to_color/image_raw"
 DEPTH_INFO = "/camera/aligned_depth_to_color/camera_info"
+RGB_COMPRESSED = RGB + "/compressed"  # image_transport's compressed plugin (PNG here: lossless)
+DEPTH_COMPRESSED = DEPTH + "/compressedDepth"  # image_transport's compressed_depth plugin (16-bit PNG)
 TF = "/tf"
 TF_STATIC = "/tf_static"
 WHEEL_ODOM = "/jackal_velocity_controller/odom"
@@ -36,8 +38,8 @@ CAMERA = "camera_color_optical_frame"
 
 # Names the reader tries, in order, when a topic is not given.
 LIDAR_CANDIDATES = (LIDAR, "/points_raw", "/ouster/points", "/os_cloud_node/points", "/lidar/points")
-RGB_CANDIDATES = (RGB, "/camera/color/image_raw/compressed", "/camera/rgb/image_raw")
-DEPTH_CANDIDATES = (DEPTH, "/camera/depth/image_rect_raw", "/camera/depth/image_raw")
+RGB_CANDIDATES = (RGB, RGB_COMPRESSED, "/camera/rgb/image_raw")
+DEPTH_CANDIDATES = (DEPTH, DEPTH_COMPRESSED, "/camera/depth/image_rect_raw", "/camera/depth/image_raw")
 ODOM_CANDIDATES = (WHEEL_ODOM, FILTERED_ODOM, "/odom")
 # Topics of our own results: never taken for sensor input.
 RESULT_TOPICS = (LABELS, MAP, GT_OBJECTS)

@@ -40,6 +40,7 @@ from stack.io import clean_stale
 from stack.messages import CameraFrame, LidarScan, ObjectTruth, WheelOdometry
 
 from . import topics as T
+from . import images as IM
 from .convert import (Cuboid, Format, camera_info_msg, depth_to_mm, dialect, image_msg, marker_array,
                       odometry_msg, pointcloud2, tf_message, to_ns, transform_stamped, velodyne_fields)
 from .errors import BagWriteError
@@ -69,7 +70,10 @@ class BagWriter:
     """
 
     def __init__(self, path: Path | str, format: Format | None = None, storage: Storage = "mcap", *,
-                 compress: bool = True, overwrite: bool = False, depth_encoding: str = "16UC1"):
+                 compress: bool = True, overwrite: bool = False, depth_encoding: str = "16UC1",
+                 images: str = "raw"):
+        """``images``: ``raw`` (sensor_msgs/Image) or ``compressed`` (lossless PNG CompressedImage on
+        ``.../compressed`` and ``.../compressedDepth``, ``testbed.bags.images``; 16-bit depth only)."""
         self.path = Path(path)
         self.format: Format = format or infer_format(self.path)
         if self.format not in ("ros1", "ros2"):
@@ -82,6 +86,11 @@ class BagWriter:
             raise BagWriteError(self.path, f"storage {storage!r}: expected 'sqlite3' or 'mcap'")
         if depth_encoding not in ("16UC1", "32FC1"):
             raise BagWriteError(self.path, f"depth_encoding {depth_encoding!r}: expected '16UC1' or '32FC1'")
+        if images not in ("raw", "compressed"):
+            raise BagWriteError(self.path, f"images {images!r}: expected 'raw' or 'compressed'")
+        if images == "compressed" and depth_encoding != "16UC1":
+            raise BagWriteError(self.path, "compressed images carry 16UC1 depth only; use images='raw' for 32FC1")
+        self.images = images
         if self.path.exists() and not overwrite:
             raise BagWriteError(self.path, "exists already; pass overwrite=True (--force) to replace it")
         if not self.path.parent.is_dir():
@@ -193,18 +202,25 @@ class BagWriter:
         """Colour (rgb8) and aligned depth images, each with its camera_info, as realsense2_camera does."""
         stamp_ns = self._ns(frame.stamp)
         d, info = self.dialect, frame.info
+        packed = self.images == "compressed"
         if frame.rgb is not None:
-            self._put(T.RGB, "sensor_msgs/msg/Image", stamp_ns,
-                      image_msg(d, stamp_ns, info.frame_id, frame.rgb, "rgb8"))
+            if packed:
+                self._put(T.RGB_COMPRESSED, IM.COMPRESSED, stamp_ns, IM.rgb_png(d, stamp_ns, info.frame_id, frame.rgb))
+            else:
+                self._put(T.RGB, "sensor_msgs/msg/Image", stamp_ns,
+                          image_msg(d, stamp_ns, info.frame_id, frame.rgb, "rgb8"))
             self._put(T.RGB_INFO, "sensor_msgs/msg/CameraInfo", stamp_ns,
                       camera_info_msg(d, stamp_ns, info, info.frame_id))
         if frame.depth_m is not None:
-            if self.depth_encoding == "16UC1":
+            if packed:
+                depth = IM.depth_png(d, stamp_ns, info.frame_id, depth_to_mm(frame.depth_m))
+            elif self.depth_encoding == "16UC1":
                 depth = image_msg(d, stamp_ns, info.frame_id, depth_to_mm(frame.depth_m), "16UC1")
             else:
                 depth_m = np.nan_to_num(np.asarray(frame.depth_m, dtype=np.float32), nan=0.0, posinf=0.0)
                 depth = image_msg(d, stamp_ns, info.frame_id, depth_m, "32FC1")
-            self._put(T.DEPTH, "sensor_msgs/msg/Image", stamp_ns, depth)
+            self._put(T.DEPTH_COMPRESSED if packed else T.DEPTH, IM.COMPRESSED if packed else "sensor_msgs/msg/Image",
+                      stamp_ns, depth)
             self._put(T.DEPTH_INFO, "sensor_msgs/msg/CameraInfo", stamp_ns,
                       camera_info_msg(d, stamp_ns, info, info.frame_id))
 

@@ -15,6 +15,9 @@ def register(sub) -> None:
     p.add_argument("--format", choices=["ros1", "ros2"], default=None,
                    help="default: ros1 when --bag ends in .bag, else ros2")
     p.add_argument("--storage", choices=["sqlite3", "mcap"], default="mcap", help="ROS 2 storage (default mcap)")
+    p.add_argument("--images", choices=["raw", "compressed"], default="compressed",
+                   help="camera topics: lossless PNG CompressedImage (.../compressed, .../compressedDepth; "
+                        "default) or raw sensor_msgs/Image")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
     p.add_argument("--light", type=float, default=None, help="override the scenario's light level (0-1)")
@@ -77,7 +80,7 @@ def record(args) -> int:
     if bad is not None:
         return bad
     summary = record_episode(args.scenario, args.bag, args.format, args.storage, args.seed, args.duration,
-                             args.light, overwrite=args.force, faults=args.faults)
+                             args.light, overwrite=args.force, faults=args.faults, images=args.images)
     print(json.dumps(summary, indent=2))
     return 0
 
