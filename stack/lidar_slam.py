@@ -68,7 +68,9 @@ class LidarOdometryConfig(BaseModel):
     min_motion_m: float = Field(0.02, ge=0, description="model deviations below this do not adapt the threshold")
     max_iterations: int = Field(500, ge=1)
     convergence: float = Field(1e-4, gt=0)
-    threads: int = Field(0, ge=0, description="0: all cores (KISS-ICP fixes it per process, at the first)")
+    threads: int = Field(1, ge=0, description="registration threads; 1 (default) gives the same bytes for a seed "
+                         "(more threads reorder float sums: ~1e-16 differences); 0: all cores. KISS-ICP fixes it "
+                         "per process, at the first")
     min_points: int = Field(500, ge=10, description="fewer points after cropping: skip the scan")
     gap_factor: float = Field(1.5, gt=1, description="a gap over this many sweeps counts as dropped scans")
     max_gap_s: float = Field(2.0, gt=0, description="constant velocity is extrapolated over at most this")
