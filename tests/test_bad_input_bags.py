@@ -64,3 +64,26 @@ def test_record_with_sqlite3_storage_writes_a_readable_bag(tmp_path):
     assert any(p.suffix == ".db3" for p in bag_path.iterdir())
     with BagReader(bag_path) as bag:
         assert len(list(bag.scans())) >= 5 and not bag.bad_message_summary()
+
+
+def test_a_stray_future_stamp_is_skipped_and_reported(tmp_path):
+    from test_rosbag_io import T_BASE_CAMERA, T_BASE_VELODYNE
+    from testbed.bags import BagWriter
+    from testbed.bags import topics as T
+    from testbed.bags.convert import pointcloud2
+
+    path = tmp_path / "stray.bag"
+    fields_of = _fields(set())
+    with BagWriter(path) as bag:
+        bag.write_extrinsics(T_BASE_VELODYNE, T_BASE_CAMERA, stamp=100.0, lidar_frame="os_sensor")
+        for i in range(8):
+            t = 100.0 + 0.1 * i
+            header_t = t + (100.0 if i == 4 else 0.0)  # one scan stamped 100 s in the future
+            msg = pointcloud2(bag.dialect, round(header_t * 1e9), "os_sensor", fields_of(t))
+            bag._put(T.LIDAR, "sensor_msgs/msg/PointCloud2", round(t * 1e9), msg)
+    with BagReader(path, require_camera=False) as reader:
+        scans = list(reader.scans())
+        summary = reader.bad_message_summary()
+    assert len(scans) == 7 and max(s.stamp for s in scans) < 101.0
+    (entry,) = summary.values()
+    assert entry["count"] == 1 and "+100.0 s off" in entry["reason"]

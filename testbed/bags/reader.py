@@ -50,6 +50,7 @@ from .salvage import SalvagedBag, SalvageError
 
 log = logging.getLogger(__name__)
 
+STRAY_STAMP_S = 5.0  # a header stamp this far off its topic's usual offset from the bag time is a stray
 MAX_SWEEP_S = 1.0  # a scan's per-point times beyond this are garbage (a spinning LiDAR sweeps in 0.05-0.2 s)
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -309,6 +310,7 @@ class BagReader:
         self.bad_messages: dict[str, dict] = {}  # topic -> count, first stamps, first reason (skipped)
         self._good: dict[str, int] = {}
         self._first_bad: dict[str, Exception] = {}
+        self._stamp_offsets: dict[str, float] = {}  # topic -> header stamp - bag time of its first message
         self._requested = dict(lidar=lidar_topic, rgb=rgb_topic, depth=depth_topic,
                                camera_info=camera_info_topic, odom=odom_topic)
         self.base_frame = base_frame
@@ -408,17 +410,21 @@ class BagReader:
             try:
                 if kind == "lidar":
                     scan = self._scan(msg, t_ns)
+                    self._check_stamp(topic, scan.stamp, now)
                     out.push(scan.stamp, scan)
                 elif kind == "odom":
                     odom = wheel_odometry_from_msg(msg)
                     if odom.stamp == 0.0:
                         odom.stamp = now
+                    self._check_stamp(topic, odom.stamp, now)
                     out.push(odom.stamp, odom)
                 elif kind == "rgb":
-                    for item in pairer.add_rgb(self._stamp(msg, t_ns), self._rgb(msg)):
+                    stamp = self._check_stamp(topic, self._stamp(msg, t_ns), now)
+                    for item in pairer.add_rgb(stamp, self._rgb(msg)):
                         out.push(item[0], self._camera_frame(*item))
                 else:
-                    for item in pairer.add_depth(self._stamp(msg, t_ns), self._depth(msg)):
+                    stamp = self._check_stamp(topic, self._stamp(msg, t_ns), now)
+                    for item in pairer.add_depth(stamp, self._depth(msg)):
                         out.push(item[0], self._camera_frame(*item))
             except (UnsupportedEncodingError, ValueError) as exc:
                 self._skip(topic, now, exc)  # one bad message is skipped, counted and named
@@ -747,6 +753,17 @@ class BagReader:
                 raise exc
             raise TooManyBadMessagesError(self.path, f"{entry['count']} bad messages on {topic} (more than {limit}; "
                                  f"the first: {text.splitlines()[0]}); raise --max-bad-messages to skip more")
+
+    def _check_stamp(self, topic: str, stamp: float, bag_time: float) -> float:
+        """A header stamp whose offset from the bag's record time differs from the topic's usual
+        offset by more than ``STRAY_STAMP_S`` is a stray (a clock jump, a garbage stamp): the message
+        is skipped and reported, so it cannot stretch the trajectory or the replayed span."""
+        offset = stamp - bag_time
+        ref = self._stamp_offsets.setdefault(topic, offset)  # the first message's offset
+        if abs(offset - ref) > STRAY_STAMP_S:
+            raise UnsupportedEncodingError(self.path, topic, f"header stamp {stamp:.3f} s is {offset - ref:+.1f} s off "
+                                           "the topic's other stamps", f"stamps within {STRAY_STAMP_S} s of them")
+        return stamp
 
     def bad_message_summary(self) -> dict[str, dict]:
         """Per topic: how many messages were skipped, the first stamps and the first reason."""
