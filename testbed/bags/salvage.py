@@ -23,6 +23,7 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from rosbags.typesys.msg import normalize_msgtype
 
 from stack.errors import DopeSlamError
+
 try:  # Python 3.14 ships zstd; before that rosbags depends on the backport
     from compression import zstd  # type: ignore[import-not-found]
 except ImportError:  # pragma: no cover - depends on the interpreter
