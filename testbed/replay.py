@@ -190,8 +190,6 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     from stack.interfaces import load_odometry
     from testbed.run import detector_name, make_detector
 
-    if detector is not None and not isinstance(detector, Detector):
-        raise TypeError(f"detector {type(detector).__name__} has no detect(frame) method")
     topics = topics or BagTopics()
     out = Path(out_dir)
     if results_bag is not None:  # never over the input, whatever --force says
@@ -205,6 +203,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     try:
         log.info("%s", bag.describe())
         detector = detector or make_detector(input_mode, stages, fpr, weights)
+        if not isinstance(detector, Detector):  # checked here too: in parallel the pipeline does not see it
+            raise TypeError(f"detector {type(detector).__name__} has no detect(frame) method")
         dims = {c: s.dims for c, s in load_catalog().items()}
         truth = BagImageTruth(bag) if bag.topics.get(T.GT_IMAGE_OBJECTS) == "std_msgs/msg/String" else None
         odom = load_odometry(odometry, bag.T_base_velodyne) if odometry is None or isinstance(odometry, str) \
