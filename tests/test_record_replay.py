@@ -186,7 +186,8 @@ def test_record_command_writes_a_ros1_bag_rosbags_reads(tmp_path):
         for conn, _, raw in reader.messages():
             reader.deserialize(raw, conn.msgtype)
             seen[conn.topic] = seen.get(conn.topic, 0) + 1
-    assert seen[T.LIDAR] == 10 and seen[T.RGB] == 11 and seen[T.GT_BASE_POSE] == 241
+    assert seen[T.LIDAR] == 10 and seen[T.GT_BASE_POSE] == 241
+    assert seen[T.RGB_COMPRESSED] == seen[T.DEPTH_COMPRESSED] == 11 and T.RGB not in seen  # compressed by default
     with BagReader(bag) as r:
         assert r.metadata["seed"] == 3 and r.metadata["scenario"] == "experiment3_columns"
         assert r.camera_info.width == 640 and r.groundtruth is not None and len(r.groundtruth.objects) == 6
