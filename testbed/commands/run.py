@@ -109,7 +109,96 @@ def check_loop_closure(enabled: bool, command: str) -> int | None:
 
 def add_odometry_option(p: argparse.ArgumentParser) -> None:
     """``--odometry NAME|MODULE:CLASS`` on every command that runs the stack."""
-    p.add_argument("--odometry", def register(sub) -> None:
+    p.add_argument("--odometry", default=None, metavar="NAME|MODULE:CLASS",
+                   help="the odometry: kiss-icp (default, LiDAR), wheel (wheel odometry only), an installed "
+                        "package's entry point (group dopeslam.odometry), or MODULE:CLASS, a class called with "
+                        "the LiDAR's mounting T_base_lidar (4x4) (stack.interfaces.Odometry)")
+
+
+def add_dynamic_options(p: argparse.ArgumentParser) -> None:
+    """``--fault``, ``--store`` and ``--retire`` (docs/faults.md, docs/dynamic.md)."""
+    p.add_argument("--fault", dest="faults", action="append", default=[], metavar="NAME=VALUE",
+                   help="a sensor fault over the scenario's [faults], e.g. lidar_drop=0.2, camera_drop=0.2, "
+                        "camera_latency=0.05 (seconds), wheel_slip=0.1; every name in docs/faults.md")
+    p.add_argument("--store", default=None, metavar="PATH",
+                   help="an object store (labels.xlsx or labels.json) from an earlier run: start from it and "
+                        "save the updated map there (rows you marked edited stay as you left them)")
+    p.add_argument("--retire", action=argparse.BooleanOptionalAction, default=True,
+                   help="retire labels whose place the depth images show empty (stack.retire)")
+
+
+def check_dynamic_options(args, command: str) -> int | None:
+    """Exit status 2 with a one-line error for a bad --fault or --store, else None."""
+    import sys
+    from pathlib import Path
+
+    from sim.faults import FaultError, parse_overrides
+
+    try:
+        parse_overrides(getattr(args, "faults", []) or [])
+    except FaultError as e:
+        print(f"dopeslam {command}: --{e}", file=sys.stderr)
+        return 2
+    store = getattr(args, "store", None)
+    if store is not None:
+        p = Path(store)
+        if p.suffix.lower() not in (".xlsx", ".json"):
+            print(f"dopeslam {command}: --store {store}: expected a .xlsx or .json file", file=sys.stderr)
+            return 2
+        if p.exists():
+            from stack.object_store import ObjectStoreError, read_objects
+
+            try:
+                read_objects(p)
+            except ObjectStoreError as e:
+                print(f"dopeslam {command}: --store {e}", file=sys.stderr)
+                return 2
+    return None
+
+
+def add_view_options(p: argparse.ArgumentParser) -> None:
+    """``--view rerun`` and ``--view-save FILE.rrd`` (testbed/view.py, docs/live_view.md)."""
+    p.add_argument("--view", choices=["rerun"], default=None,
+                   help="watch the job live in the Rerun viewer: LiDAR scan and map, camera image with detections "
+                        "and FPR verdicts, true and estimated path, labels with their truth (needs the view extra; "
+                        "default: no live view)")
+    p.add_argument("--view-save", default=None, metavar="FILE.rrd",
+                   help="write the live view to a Rerun recording file (open it with `rerun FILE.rrd`; "
+                        "default: none)")
+
+
+def open_view(args, command: str):
+    """(the view --view/--view-save asked for or None, exit status 2 when it cannot start, else None)."""
+    if getattr(args, "view", None) is None and not getattr(args, "view_save", None):
+        return None, None
+    import sys
+
+    from testbed.view import ViewError, make_view
+
+    try:
+        return make_view(args.view, args.view_save), None
+    except ViewError as e:
+        print(f"dopeslam {command}: {e}", file=sys.stderr)
+        return None, 2
+
+
+def check_loop_closure(enabled: bool, command: str) -> int | None:
+    """Exit status 2 with a one-line error naming the pip command when loop closure lacks GTSAM."""
+    if not enabled:
+        return None
+    import sys
+
+    from stack.loops.closure import require_gtsam
+
+    try:
+        require_gtsam()
+    except ModuleNotFoundError as e:
+        print(f"dopeslam {command}: {e}", file=sys.stderr)
+        return 2
+    return None
+
+
+def register(sub) -> None:
     p = sub.add_parser("run", help="the main job: a scored drive-through episode (report, labels.xlsx, map.png)")
     p.add_argument("scenario", nargs="?", default=None, help="bundled name or TOML path (default: the default scenario)")
     p.add_argument("--out", default="out/run")
