@@ -398,17 +398,6 @@ def depth_to_metres(pixels: np.ndarray, encoding: str) -> np.ndarray:
     return depth
 
 
-def decode_compressed(msg: Any) -> np.ndarray:
-    """RGB pixels of a sensor_msgs/CompressedImage (jpeg or png)."""
-    import cv2  # only bags with compressed images need OpenCV
-
-    buf = np.asarray(msg.data, dtype=np.uint8)
-    bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError(f"could not decode compressed image (format {msg.format!r})")
-    return np.ascontiguousarray(bgr[:, :, ::-1])
-
-
 # --- camera info, tf, odometry, markers -----------------------------------------------------
 
 def camera_info_msg(d: Dialect, stamp_ns: int, info: CameraInfo, frame_id: str) -> Any:
