@@ -240,8 +240,11 @@ def _ray(ray_address: str | None):
         raise MatrixError("--ray: Ray is not installed; install it with: pip install -e '.[ray]'") from None
     if not ray.is_initialized():
         env = {"env_vars": {"DOPESLAM_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1"}}
+        extra = {}
+        if ray_address and ray_address.split(":")[0] in ("127.0.0.1", "localhost"):
+            extra["_node_ip_address"] = "127.0.0.1"  # a cluster on this machine's loopback: join it there
         ray.init(address=ray_address, runtime_env=env, log_to_driver=False, include_dashboard=False,
-                 logging_level=logging.WARNING)
+                 logging_level=logging.WARNING, **extra)
     return ray
 
 

@@ -42,7 +42,7 @@ def _sweep(extra: list[str], out: Path, env: dict) -> list[dict]:
 
 def test_processes_local_ray_and_a_cluster_give_the_same_rows(tmp_path):
     ray_bin = shutil.which("ray") or str(Path(sys.executable).parent / "ray")
-    env = {**os.environ, "DOPESLAM_TORCH_THREADS": "1", "RAY_USAGE_STATS_ENABLED": "0"}
+    env = {**os.environ, "DOPESLAM_TORCH_THREADS": "1", "RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "disabled"}
     procs = _sweep(["--jobs", "2"], tmp_path / "procs", env)
     assert len(procs) == 2 and {r["status"] for r in procs} == {"ok"}
     local = _sweep(["--ray"], tmp_path / "ray_local", env)
