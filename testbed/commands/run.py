@@ -24,6 +24,14 @@ def add_dope_options(p: argparse.ArgumentParser, defaults: bool = True,
 CONFIG_DEFAULT = " (default: the config's, see --config and --set)"
 
 
+def add_odometry_option(p: argparse.ArgumentParser) -> None:
+    """``--odometry NAME|MODULE:CLASS`` on every command that runs the stack."""
+    p.add_argument("--odometry", default=None, metavar="NAME|MODULE:CLASS",
+                   help="the odometry: kiss-icp (default, LiDAR), wheel (wheel odometry only), an installed "
+                        "package's entry point (group dopeslam.odometry), or MODULE:CLASS, a class called with "
+                        "the LiDAR's mounting T_base_lidar (4x4) (stack.interfaces.Odometry)")
+
+
 def add_dynamic_options(p: argparse.ArgumentParser) -> None:
     """``--fault``, ``--store`` and ``--retire`` (docs/faults.md, docs/dynamic.md)."""
     p.add_argument("--fault", dest="faults", action="append", default=[], metavar="NAME=VALUE",
@@ -107,14 +115,6 @@ def check_loop_closure(enabled: bool, command: str) -> int | None:
     return None
 
 
-def add_odometry_option(p: argparse.ArgumentParser) -> None:
-    """``--odometry NAME|MODULE:CLASS`` on every command that runs the stack."""
-    p.add_argument("--odometry", default=None, metavar="NAME|MODULE:CLASS",
-                   help="the odometry: kiss-icp (default, LiDAR), wheel (wheel odometry only), an installed "
-                        "package's entry point (group dopeslam.odometry), or MODULE:CLASS, a class called with "
-                        "the LiDAR's mounting T_base_lidar (4x4) (stack.interfaces.Odometry)")
-
-
 def register(sub) -> None:
     p = sub.add_parser("run", help="the main job: a scored drive-through episode (report, labels.xlsx, map.png)")
     p.add_argument("scenario", nargs="?", default=None, help="bundled name or TOML path (default: the default scenario)")
@@ -136,6 +136,7 @@ def register(sub) -> None:
     add_dope_options(p, defaults=False, unset=CONFIG_DEFAULT)
     add_config_options(p)
     add_dynamic_options(p)
+    p.add_argument("--json", action="store_true", help="print the report (report.json's content) as JSON on stdout (logs on stderr)")
     add_view_options(p)
     p.set_defaults(func=run)
 
@@ -147,6 +148,7 @@ def register(sub) -> None:
     p.add_argument("--config", default=None, metavar="FILE",
                    help="settings file whose [evidence] section applies (e.g. a run's config.toml)")
     p.add_argument("--out", default=None, help="write the scores as JSON here")
+    p.add_argument("--json", action="store_true", help="print the scores as JSON on stdout (logs on stderr)")
     p.set_defaults(func=score)
 
 
@@ -190,6 +192,7 @@ def run(args) -> int:
     except ImportPathError as e:  # the odometry's constructor failed
         print(f"dopeslam run: --{e}", file=sys.stderr)
         return 2
+    args.json_result = report  # --json (testbed/cli.py)
     print_summary(report)
     print(f"wrote {args.out}/report.json, config.toml, labels.xlsx, map.png, estimate_tum.txt, groundtruth_tum.txt")
     return 0
@@ -238,6 +241,7 @@ def score(args) -> int:
           f"{'-' if not n_map else f'{100 * n_ok / n_map:.1f} %'}, recall {100 * n_ok / max(1, n_obj):.1f} %, "
           f"mean error {'-' if not errs else f'{100 * float(np.mean(errs)):.1f} cm'} (mean of the runs' means); "
           f"{sum(1 for s in rows if s['false_labels'] == 0)}/{len(rows)} maps without a false label")
+    args.json_result = {"evidence": evidence.model_dump(), "runs": rows}  # --json
     if args.out:
         from testbed.simulate import write_json
 
