@@ -8,6 +8,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from testbed.matrix import parse_seeds  # noqa: F401  (one seed syntax everywhere)
+
 log = logging.getLogger(__name__)
 
 
@@ -16,25 +18,6 @@ class Cell:
     scenario: str
     seed: int
     options: dict = field(default_factory=dict)
-
-
-def parse_seeds(text: str) -> list[int]:
-    """``"0-9,20"`` -> [0, 1, ..., 9, 20] (order kept, duplicates dropped). ValueError names the part."""
-    try:
-        from testbed.matrix import parse_seeds as shared
-    except ImportError:
-        shared = None
-    if shared is not None:
-        return list(shared(text))
-    seeds: list[int] = []
-    for part in str(text).split(","):
-        part = part.strip()
-        m = re.fullmatch(r"(\d+)(?:\s*-\s*(\d+))?", part)
-        if not m or (m.group(2) is not None and int(m.group(2)) < int(m.group(1))):
-            raise ValueError(f"expected seeds such as 0-9,20 (non-negative integers, ranges low-high), got {part!r}")
-        lo, hi = int(m.group(1)), int(m.group(2) or m.group(1))
-        seeds.extend(s for s in range(lo, hi + 1) if s not in seeds)
-    return seeds
 
 
 def cell_dir(out_dir: Path, cell) -> Path:
