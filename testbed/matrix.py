@@ -46,7 +46,8 @@ log = logging.getLogger(__name__)
 VOLATILE = re.compile(r"^(wall_seconds|real_time_factor|time_split_s\..*|timings?\..*|.*_hz|.*\.fps|fps|"
                       r"provenance\.(command|git_commit|git_dirty|weights|fpr_thresholds|scenario))$")
 RETRIES = 1  # a failed cell runs once more before it becomes an error row
-SHORT_KEYS = {"loop_closure": "loop_closure.enabled"}  # option names of `dopeslam test` cases
+SHORT_KEYS = {"loop_closure": "loop_closure.enabled"}
+JOBS = ("run", "perception-cache")  # option names of `dopeslam test` cases
 
 
 class MatrixError(DopeSlamError, ValueError):
@@ -89,18 +90,41 @@ class Cell:
 
 # ----------------------------------------------------------------------------------------- resolution
 
+def cell_job(cell: Cell) -> str:
+    """What the cell runs: ``run`` (a scored episode, the default) or ``perception-cache`` (the
+    labelling environment's perception cache of one episode; the other options are the environment's
+    keyword arguments)."""
+    job = cell.options.get("job", "run")
+    if job not in JOBS:
+        raise MatrixError(f"cell option 'job': expected one of {list(JOBS)}, got {job!r}")
+    return job
+
+
+def _env_kwargs(cell: Cell) -> dict:
+    return {k: v for k, v in cell.options.items() if k != "job"}
+
+
+def _cache_spec(cell: Cell):
+    from testbed.envs.labelling import DopeSlamLabellingEnv
+
+    try:
+        env = DopeSlamLabellingEnv(scenario=str(cell.scenario), seeds=[int(cell.seed)], **_env_kwargs(cell))
+    except (TypeError, ValueError) as e:
+        raise MatrixError(f"cell {cell.label()}: {e}") from None
+    return env, env.spec_for(0)
+
+
 def cell_config(cell: Cell):
     """The cell's fully resolved :class:`testbed.settings.RunConfig` (raises :class:`MatrixError`)."""
     from stack.config import ConfigError, apply_sets
     from testbed.settings import RunConfig
 
+    if cell_job(cell) != "run":
+        raise MatrixError(f"cell {cell.label()}: a {cell_job(cell)} cell has no run config")
     sets = {"run.scenario": str(cell.scenario), "run.seed": int(cell.seed)}
     for k, v in cell.options.items():
-        if k == "job":
-            if v != "run":
-                raise MatrixError(f"cell option 'job': the matrix runs the run job, got {v!r}")
-            continue
-        sets[SHORT_KEYS.get(k, k)] = v
+        if k != "job":
+            sets[SHORT_KEYS.get(k, k)] = v
     try:
         return apply_sets(RunConfig(), sets, source=lambda k: f"cell option {k!r}")
     except ConfigError as e:
@@ -126,6 +150,13 @@ def cell_key(cell: Cell) -> str:
     from stack.dope_fpr import default_thresholds_path, default_weights
     from testbed.provenance import file_sha256, package_version, scenario_sha256
 
+    if cell_job(cell) == "perception-cache":  # the cache's own key names every input it depends on
+        from testbed.envs.perception_cache import cache_dir
+
+        env, spec = _cache_spec(cell)
+        where = str(cache_dir(env.cache_dir).resolve())
+        payload = {"job": "perception-cache", "spec": spec.stem(), "cache": where, "version": package_version()}
+        return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:16]
     config = cell_config(cell)
     d = config.detector
     weights = d.weights or default_weights(d.input)
@@ -141,9 +172,23 @@ def cell_key(cell: Cell) -> str:
 # ------------------------------------------------------------------------------------------ one cell
 
 def execute(cell: Cell, out_dir: Path) -> dict:
-    """Run one cell's episode into ``out_dir`` (as ``dopeslam run`` does); its report."""
+    """Run one cell's episode into ``out_dir`` (as ``dopeslam run`` does); its report. A
+    ``perception-cache`` cell builds (or finds) its episode's cache and writes a small report naming it."""
     from stack.interfaces import load_detector, resolve_policy
     from testbed.run import run_episode
+
+    if cell_job(cell) == "perception-cache":
+        from testbed.io import write_json
+
+        t0 = time.perf_counter()
+        env, spec = _cache_spec(cell)
+        env.replay_for(0)
+        env.close()
+        report = {"job": "perception-cache", "scenario": str(cell.scenario), "seed": int(cell.seed),
+                  "cache_stem": spec.stem(), "wall_seconds": time.perf_counter() - t0}
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        write_json(Path(out_dir) / "report.json", report)
+        return report
 
     config = cell_config(cell)
     policy = resolve_policy(config.store.policy)
@@ -265,7 +310,8 @@ def prepare_shared(cells) -> None:
     vocabulary of cells with loop closure and no vocabulary of their own. It lands in the cache
     (``$DOPESLAM_CACHE``), which every cell on this machine reads; a cluster node without it builds the
     same tree from the same seeded inputs once, into its own cache."""
-    if any(c.loop_closure.enabled and not c.loop_closure.vocabulary for c in map(cell_config, cells)):
+    runs = [c for c in cells if cell_job(c) == "run"]
+    if any(c.loop_closure.enabled and not c.loop_closure.vocabulary for c in map(cell_config, runs)):
         from testbed.vocabulary import build_vocabulary
 
         build_vocabulary()

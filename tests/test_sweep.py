@@ -77,6 +77,21 @@ def test_cell_keys_stable_and_changed_by_every_input(tmp_path):
         cell_key(Cell("experiment3_columns", 0, {"stages": "9"}))
 
 
+def test_perception_cache_cells_keyed_by_what_the_cache_depends_on(tmp_path):
+    def cache_cell(seed=0, **kw):
+        return Cell("experiment3_columns", seed, {"job": "perception-cache", "duration": 2.0,
+                                                  "cache_dir": str(tmp_path), **kw})
+
+    k = cell_key(cache_cell())
+    assert k == cell_key(cache_cell()) and k != cell_key(cache_cell(1)) and k != cell_key(cache_cell(input_mode="depth"))
+    assert k != cell_key(cache_cell(cache_dir=str(tmp_path / "elsewhere")))
+    assert k != cell_key(Cell("experiment3_columns", 0, {"duration": 2.0}))  # a run cell of the same episode
+    with pytest.raises(MatrixError, match="job"):
+        cell_key(Cell("experiment3_columns", 0, {"job": "train"}))
+    with pytest.raises(MatrixError, match="no_such_option"):
+        cell_key(cache_cell(no_such_option=1))
+
+
 def test_flatten_keeps_scalars_only():
     assert flatten({"a": {"b": 1, "c": [1, 2], "d": {"e": None}}, "f": "x", "g": 0.5}) == {
         "a.b": 1, "a.d.e": None, "f": "x", "g": 0.5}

@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -49,6 +50,9 @@ def register(sub) -> None:
                                                    "~/.cache/dopeslam/perception)")
     p.add_argument("--max-objects", type=int, default=16, help="object slots (candidate objects) per episode")
     p.add_argument("--jobs", type=int, default=1, help="build missing episode caches in this many processes")
+    p.add_argument("--ray", action="store_true", help="build missing episode caches as tasks on a local Ray runtime")
+    p.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="build them on an existing Ray cluster (its nodes share this machine's cache folder)")
     p.set_defaults(func=run)
 
 
@@ -66,8 +70,8 @@ def run(args) -> int:
     env_kwargs = {"duration": args.duration, "input_mode": args.input_mode, "stages": args.stages,
                   "weights": args.weights, "cache_dir": args.cache, "max_objects": args.max_objects}
     seeds = range(args.first_seed, args.first_seed + args.episodes)
-    if args.jobs > 1:
-        prebuild(scenarios, seeds, env_kwargs, args.jobs)
+    if args.jobs > 1 or args.ray or args.ray_address:
+        prebuild(scenarios, seeds, env_kwargs, args.jobs, ray=args.ray, ray_address=args.ray_address)
     result = evaluate(names, scenarios, seeds, env_kwargs)
     paths = write_outputs(result, args.out)
     print(table_markdown(result))
@@ -75,38 +79,25 @@ def run(args) -> int:
     return 0
 
 
-def _build_one(scenario, seed: int, env_kwargs: dict) -> str:
-    """Worker: build (or find) one episode's cache; returns its file stem."""
-    from testbed.envs.labelling import DopeSlamLabellingEnv
+def prebuild(scenarios, seeds, env_kwargs: dict, jobs: int, ray: bool = False,
+             ray_address: str | None = None) -> list[str]:
+    """Build the perception caches of every (scenario, seed) through the matrix runner
+    (:func:`testbed.matrix.run_cells`: ``jobs`` local processes, or Ray tasks), each running its own
+    simulation, odometry and DOPE; episodes already cached are only read. The caches' file stems, in order.
+    Each cell's small report lands under ``$DOPESLAM_CACHE/perception-cells/`` (resumed like any sweep)."""
+    from testbed.matrix import Cell, run_cells
+    from testbed.settings import cache_dir
 
-    env = DopeSlamLabellingEnv(scenario=scenario, seeds=[seed], **env_kwargs)
-    return env.replay_for(0).perception.spec.stem()
-
-
-def _one_thread() -> None:
-    """Worker start: one math-library thread each (the workers already use the cores), before torch loads."""
-    import os
-
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ[var] = "1"
-
-
-def prebuild(scenarios, seeds, env_kwargs: dict, jobs: int) -> list[str]:
-    """Build the perception caches of every (scenario, seed) in ``jobs`` processes (each runs its own
-    simulation, odometry and DOPE); episodes already cached are only read."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    work = [(sc, int(s)) for sc in scenarios for s in seeds]
-    log.info("building %d episode caches in %d processes", len(work), jobs)
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_one_thread) as pool:
-        futures = [pool.submit(_build_one, sc, s, env_kwargs) for sc, s in work]
-        stems = []
-        for (sc, s), f in zip(work, futures):
-            stems.append(f.result())
-            log.info("cached %s seed %d (%d of %d)", sc, s, len(stems), len(work))
-    return stems
+    opts = {"job": "perception-cache", **{k: (str(v) if isinstance(v, os.PathLike) else v)
+                                          for k, v in env_kwargs.items() if v is not None}}
+    cells = [Cell(str(sc), int(s), opts) for sc in scenarios for s in seeds]
+    log.info("building %d episode caches with %d workers", len(cells), jobs)
+    results = run_cells(cells, cache_dir("perception-cells"), jobs=jobs, ray=ray, ray_address=ray_address)
+    failed = [r for r in results if r["status"] != "ok"]
+    if failed:
+        log.warning("%d episode caches failed to build (they are built again, in this process): %s",
+                    len(failed), "; ".join(f"{r['cell'].label()}: {r['error']}" for r in failed[:3]))
+    return [r["report"]["cache_stem"] for r in results if r["status"] == "ok"]
 
 
 def evaluate(names: list[str], scenarios: list[str], seeds, env_kwargs: dict) -> dict:
