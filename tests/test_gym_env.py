@@ -451,18 +451,24 @@ def test_slots_recycle_unlabelled_candidates_when_full():
 
 
 @pytest.mark.slow
-def test_prebuild_builds_episode_caches_in_worker_processes(tmp_path):
+def test_prebuild_builds_episode_caches_through_the_matrix_runner(tmp_path, monkeypatch):
+    """evaluate-policy's cache builds: two episodes with the real detector in worker processes; the
+    environment then reads both without a detector, and a second prebuild resumes (builds nothing)."""
     from testbed.commands.policy import prebuild
 
-    kw = {k: v for k, v in env_kwargs(tmp_path, duration=0.5).items() if k not in ("scenario", "seeds")}
+    monkeypatch.setenv("DOPESLAM_CACHE", str(tmp_path / "root"))
+    kw = {"duration": 0.5, "cache_dir": str(tmp_path / "perception"), "renderer": "tiny"}
     stems = prebuild([SCENE], [7, 8], kw, jobs=2)
     assert len(set(stems)) == 2
-    factory = CountingFactory()
-    env = gymnasium.make("DopeSlamLabelling-v0", **env_kwargs(tmp_path, duration=0.5, seeds=[7, 8],
-                                                              detector_factory=factory))
+    cells = sorted((tmp_path / "root" / "perception-cells" / "cells").iterdir())
+    assert len(cells) == 2
+    stamp = [(c / "report.json").stat().st_mtime_ns for c in cells]
+    env = gymnasium.make("DopeSlamLabelling-v0", scenario=SCENE, seeds=[7, 8], build=False, **kw)
     for i in range(2):
-        env.reset(options={"episode": i})
-    assert factory.calls == 0  # both were read from the cache the workers wrote
+        env.reset(options={"episode": i})  # build=False: both read from the cache the workers wrote
+    env.close()
+    assert prebuild([SCENE], [7, 8], kw, jobs=2) == stems
+    assert [(c / "report.json").stat().st_mtime_ns for c in cells] == stamp  # resumed, not rebuilt
 
 
 def test_real_detector_identity_changes_with_weights_thresholds_and_colour_model(tmp_path, monkeypatch):
