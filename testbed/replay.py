@@ -77,9 +77,12 @@ class BagImageTruth:
     def __len__(self) -> int:
         return len(self._by_ns)
 
+    def get(self, frame: CameraFrame) -> list[dict] | None:
+        """The frame's truth, or None when the bag has none for it (its entry was in a damaged chunk)."""
+        return self._by_ns.get(int(round(frame.stamp * 1e9)))
+
     def image_truth(self, frame: CameraFrame) -> list[dict]:
-        key = int(round(frame.stamp * 1e9))
-        truths = self._by_ns.get(key)
+        truths = self.get(frame)
         if truths is None:
             raise KeyError(f"{self.path}: {T.GT_IMAGE_OBJECTS} has no entry for the image at {frame.stamp:.9f} s")
         return truths
@@ -101,6 +104,7 @@ class DetectionAhead:
         self._queue: queue.Queue = queue.Queue(maxsize)
         self._stop = threading.Event()
         self.read_seconds = 0.0
+        self.reader: BagReader | None = None  # the second reader, for its bad messages and skipped chunks
         self._thread = threading.Thread(target=self._run, name="replay-detection", daemon=True)
         self._thread.start()
 
@@ -115,7 +119,7 @@ class DetectionAhead:
 
     def _run(self) -> None:
         try:
-            reader = self._open()
+            reader = self.reader = self._open()
             try:
                 t_last = time.perf_counter()
                 for i, frame in enumerate(reader.camera_frames()):
@@ -221,6 +225,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         pipe = DopeSlam(odom, None if parallel else detector, bag.T_base_camera, dims, policy, loop_closer=lc,
                         detect_every=dope_every, keep_observations=keep_detections)
         dlog = DetectionLog()
+        unscored_frames = 0  # detected images whose per-image truth is missing (lost with a damaged chunk)
         all_dets: list = []
         scans = 0
         read_s = 0.0
@@ -245,9 +250,11 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                     dets = pipe.on_image(msg)
                 if dets is not None:
                     dlog.frames += 1
-                    if truth is not None:
-                        flags = score_detections(dlog, dets, truth.image_truth(msg))
+                    truths = truth.get(msg) if truth is not None else None
+                    if truths is not None:
+                        flags = score_detections(dlog, dets, truths)
                     else:
+                        unscored_frames += truth is not None
                         dlog.predictions += sum(d.fpr_pass for d in dets)
                         flags = None
                     if keep_detections:
@@ -290,17 +297,28 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                              "dope": dlog.seconds, "image_reading": ahead.read_seconds if ahead else 0.0,
                              "fusion": pipe.timing["fusion"]},
         }
-        if bag.salvaged:
-            report["salvaged"] = bag.salvaged
-        if bag.bad_messages:  # skipped, counted and named (the detection reader's are in its log)
-            report["bad_messages"] = bag.bad_message_summary()
+        readers = [bag] + ([ahead.reader] if ahead is not None and ahead.reader is not None else [])
+        salvaged = list(dict.fromkeys(r.salvaged for r in readers if r.salvaged))
+        if salvaged:
+            report["salvaged"] = "; ".join(salvaged)
+        skipped = _skipped_chunks(readers)
+        if skipped:  # damaged chunks passed over (by either reader): where, why, and what was lost
+            report["skipped_chunks"] = skipped
+        bad = _bad_messages(readers)
+        if bad:  # skipped, counted and named; the detection reader's topics with the others
+            report["bad_messages"] = bad
+        gaps = _ground_truth_gaps(skipped)
         stats = getattr(odom, "stats", None)
         odometry = {"poses": int(len(stamps)), "scans": scans, "path_length_m": _path_length(poses),
                     "odometry_hz": getattr(stats, "hz", None)}
         T_world_map = None
         if gt is not None:
-            T_world_map = gt.T_world_base_at(stamps[0])
-            odometry = {**score_trajectory(stamps, poses, gt, T_world_map), **odometry}
+            scored = ~_in_spans(stamps, gaps)  # poses whose ground truth was lost are not scored
+            T_world_map = _aligned(gt, stamps, poses, scored)
+            if scored.sum() >= 2:
+                odometry = {**score_trajectory(stamps[scored], poses[scored], gt, T_world_map), **odometry}
+            if gaps:
+                odometry["poses_unscored"] = int((~scored).sum())
             if lc is not None:
                 odometry.update(lc.summary(stamps, poses_odom, poses, T_world_map, gt.T_world_base_at))
         elif lc is not None:
@@ -313,11 +331,16 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         report["odometry"] = odometry
         ws, wp = result.wheel_stamps, result.T_odom_base
         if gt is not None and len(ws) > 1:
-            report["wheel_odometry"] = score_trajectory(ws, wp, gt, gt.T_world_base_at(ws[0]))
+            keep = ~_in_spans(ws, gaps)
+            if keep.sum() > 1:
+                report["wheel_odometry"] = score_trajectory(np.asarray(ws)[keep], np.asarray(wp)[keep], gt,
+                                                            _aligned(gt, ws, wp, keep))
         dsum = dlog.summary()
         if truth is None:  # precision and recall need the truth per image: left out
             dsum = {k: dsum[k] for k in ("frames", "predictions", "fps")}
         dsum["detections_without_pose"] = result.unposed
+        if truth is not None and unscored_frames:
+            dsum["frames_without_ground_truth"] = unscored_frames
         report["detection"] = dsum
         if gt is not None and gt.objects:
             labels, labels_summary = score_labels(store, gt.objects, T_world_map)
@@ -362,6 +385,49 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         if ahead is not None:
             ahead.close()
         bag.close()
+
+
+def _skipped_chunks(readers: list[BagReader]) -> list[dict]:
+    """The damaged chunks any of the readers passed over, each once, in file order."""
+    seen: dict[tuple, dict] = {}
+    for reader in readers:
+        for chunk in reader.skipped_chunks:
+            seen.setdefault((chunk["file"], chunk["byte"]), chunk)
+    return [seen[k] for k in sorted(seen)]
+
+
+def _bad_messages(readers: list[BagReader]) -> dict[str, dict]:
+    """The readers' bad-message summaries as one (the two readers of a replay read different topics;
+    a topic both read is counted once, by the reader that met more)."""
+    out: dict[str, dict] = {}
+    for reader in readers:
+        for topic, entry in reader.bad_message_summary().items():
+            if topic not in out or entry["count"] > out[topic]["count"]:
+                out[topic] = entry
+    return dict(sorted(out.items()))
+
+
+def _ground_truth_gaps(skipped: list[dict]) -> list[tuple[float, float]]:
+    """Bag-time spans whose ground-truth poses were lost with a skipped chunk."""
+    return [(c["start_s"], c["end_s"]) for c in skipped
+            if "start_s" in c and c.get("messages", {}).get(T.GT_BASE_POSE)]
+
+
+def _aligned(gt, stamps, poses, scored: np.ndarray) -> np.ndarray:
+    """T_world_frame from the ground truth at the first pose (the frame's origin); when that pose's
+    ground truth was lost, at the first scored pose instead."""
+    if not scored.size or scored[0] or not scored.any():
+        return gt.T_world_base_at(stamps[0])
+    k = int(np.argmax(scored))
+    return gt.T_world_base_at(stamps[k]) @ np.linalg.inv(np.asarray(poses[k]))
+
+
+def _in_spans(stamps: np.ndarray, spans: list[tuple[float, float]]) -> np.ndarray:
+    stamps = np.asarray(stamps, dtype=float)
+    out = np.zeros(stamps.shape, dtype=bool)
+    for a, b in spans:
+        out |= (stamps >= a) & (stamps <= b)
+    return out
 
 
 def _bag_span(bag: BagReader, stamps: np.ndarray) -> float:

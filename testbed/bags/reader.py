@@ -102,6 +102,7 @@ class _AnyReaderSource:
         self.topics = {name: info.msgtype or "" for name, info in self.reader.topics.items()}
         self.counts = {name: info.msgcount for name, info in self.reader.topics.items()}
         self.salvage_summary = ""
+        self.skipped_chunks: list[dict] = []
 
     def messages(self, topics: Collection[str]) -> Iterator[tuple[str, int, str, bytes]]:
         conns = [c for c in self.reader.connections if c.topic in topics]
@@ -123,6 +124,7 @@ class _SalvageSource:
         self.topics = self.bag.topics
         self.counts = self.bag.counts
         self.salvage_summary = self.bag.summary()
+        self.skipped_chunks = self.bag.skipped_chunks
 
     def messages(self, topics: Collection[str]) -> Iterator[tuple[str, int, str, bytes]]:
         return self.bag.messages(topics)
@@ -338,6 +340,7 @@ class BagReader:
         self.metadata: dict[str, Any] = {}
         self.time_encoding: PointTimeEncoding | None = None
         self.salvaged = ""  # the salvage summary when the bag was read by walking it
+        self.skipped_chunks: list[dict] = []  # damaged chunks passed over (``SalvagedBag.skipped_chunks``)
         self.pairing_stats: dict[str, int] = {}
         self._time_field_warned = False
 
@@ -376,6 +379,7 @@ class BagReader:
     def _read_contents(self) -> None:
         assert self._source is not None
         self.salvaged = self._source.salvage_summary
+        self.skipped_chunks = list(self._source.skipped_chunks)
         self.topics = dict(self._source.topics)
         self.message_counts = dict(self._source.counts)
         self._resolve_topics()
@@ -775,17 +779,39 @@ class BagReader:
         if source is None:
             raise BagReadError(self.path, "reader is not open (use it in a with block)")
         last_t = None
+        at_last = 0  # messages yielded at last_t (a resumed walk skips them)
         try:
             for topic, t_ns, msgtype, raw in source.messages(topics):
                 msg = source.deserialize(raw, msgtype)
+                at_last = at_last + 1 if t_ns == last_t else 1
                 last_t = t_ns
                 yield topic, t_ns, msg
         except BagError:
             raise
         except Exception as exc:  # any failure inside the third-party parser means a damaged file
             where = f"after the message at {last_t * 1e-9:.3f} s" if last_t is not None else "at its first message"
-            hint = "" if self.salvage == "always" else "; BagReader(..., salvage='always') reads the intact chunks"
-            raise CorruptBagError(self.path, f"damaged {where} ({type(exc).__name__}: {exc}){hint}") from None
+            reason = f"damaged {where} ({type(exc).__name__}: {exc})"
+            if self.salvage != "auto" or not isinstance(source, _AnyReaderSource) or self._source is not source:
+                hint = "" if self.salvage == "always" else "; BagReader(..., salvage='always') reads the intact chunks"
+                raise CorruptBagError(self.path, f"{reason}{hint}") from None
+        else:
+            return
+        # a chunk behind the index is damaged (bad CRC, undecodable): go on from the intact chunks
+        try:
+            walked = _open_source(self.path, "always")
+        except CorruptBagError:
+            raise CorruptBagError(self.path, reason) from None
+        source.close()
+        self._source = walked
+        self.salvaged = walked.salvage_summary
+        self.skipped_chunks = list(walked.skipped_chunks)
+        log.warning("%s: %s; reading the intact chunks instead: %s", self.path, reason, walked.salvage_summary)
+        seen = 0
+        for topic, t_ns, msg in self._messages(topics):
+            if last_t is not None and (t_ns < last_t or (t_ns == last_t and seen < at_last)):
+                seen += t_ns == last_t
+                continue
+            yield topic, t_ns, msg
 
     def _first(self, topic: str) -> Any | None:
         gen = self._messages([topic])

@@ -61,6 +61,9 @@ class SalvageReport:
     messages: int
     chunks: int
     notes: list[str] = field(default_factory=list)
+    # damaged chunks passed over: byte, reason, and from the index records that follow a chunk (when
+    # intact) the bag-time span and the message count per topic that were lost with it
+    skipped: list[dict] = field(default_factory=list)
 
     def summary(self) -> str:
         pct = 100.0 * self.good_bytes / max(self.file_size, 1)
@@ -110,6 +113,17 @@ class SalvagedBag:
                     report = self._walk_mcap(index, f, path, typedefs)
             self.reports.append(report)
         self.typestore.register(typedefs)
+        for index, report in enumerate(self.reports):
+            for skipped in report.skipped:
+                by_id = skipped.pop("_by_channel")
+                stamps = skipped.pop("_stamps")
+                if stamps:
+                    skipped["start_s"], skipped["end_s"] = min(stamps) * 1e-9, max(stamps) * 1e-9
+                messages: dict[str, int] = {}
+                for cid, n in by_id.items():
+                    topic = self._conns.get((index, cid), (f"channel {cid}", ""))[0]
+                    messages[topic] = messages.get(topic, 0) + n
+                skipped["messages"] = dict(sorted(messages.items()))
         self.topics: dict[str, str] = {}
         self.counts: dict[str, int] = {}
         for (file_index, cid), (topic, msgtype) in self._conns.items():
@@ -126,6 +140,12 @@ class SalvagedBag:
 
     def summary(self) -> str:
         return "; ".join(f"{r.path.name}: {r.summary()}" for r in self.reports)
+
+    @property
+    def skipped_chunks(self) -> list[dict]:
+        """The damaged chunks passed over, in file order: ``file``, ``byte``, ``reason``, and where
+        the bag's index records say it, ``start_s``/``end_s`` (bag time) and ``messages`` per topic."""
+        return [dict(c) for r in self.reports for c in r.skipped]
 
     def deserialize(self, raw: bytes, msgtype: str) -> object:
         if self.ros1:
@@ -169,6 +189,7 @@ class SalvagedBag:
             raise SalvageError("not a ROS 1 bag (version 2.0 magic missing)")
         report = SalvageReport(path, size, len(ROS1_MAGIC), 0, 0)
         pos = len(ROS1_MAGIC)
+        damaged: dict | None = None  # the last chunk, when it was skipped: its index records follow it
         while pos < size:
             record = _read_ros1_record(f, pos, size)
             if isinstance(record, str):
@@ -176,6 +197,17 @@ class SalvagedBag:
                 break
             header, data_pos, data_len = record
             op = header.get("op", b"\x00")[0]
+            if op != 0x04 and op != 0x05:
+                damaged = None
+            if op == 0x04 and damaged is not None:  # index data after a damaged chunk: what it held
+                try:
+                    cid, count = struct.unpack("<I", header["conn"])[0], struct.unpack("<I", header["count"])[0]
+                    f.seek(data_pos)
+                    index = f.read(min(data_len, 12 * count))
+                    damaged["_by_channel"][cid] = damaged["_by_channel"].get(cid, 0) + count
+                    damaged["_stamps"].extend(sec * 10**9 + nsec for sec, nsec, _ in struct.iter_unpack("<III", index[:len(index) // 12 * 12]))
+                except (KeyError, struct.error):
+                    pass
             if op == 0x07:  # connection record (in the index section)
                 f.seek(data_pos)
                 self._ros1_connection(file_index, header, f.read(data_len), typedefs)
@@ -188,7 +220,11 @@ class SalvagedBag:
                     entries = self._ros1_chunk_entries(file_index, raw, typedefs)
                 except (KeyError, ValueError, RuntimeError, struct.error, SalvageError) as exc:
                     report.notes.append(f"skipped a damaged chunk at byte {pos:,} ({exc})")
+                    report.skipped.append(_skipped(path, pos, exc))
                     entries = []
+                    damaged = report.skipped[-1]
+                else:
+                    damaged = None
                 if entries:
                     entries.sort()
                     self._chunks.append((file_index, _Chunk(data_pos, data_len, compression, usize,
@@ -238,6 +274,7 @@ class SalvagedBag:
         report = SalvageReport(path, size, len(MCAP_MAGIC), 0, 0)
         pos = len(MCAP_MAGIC)
         schemas: dict[int, tuple[str, str, str]] = {}
+        damaged: dict | None = None  # the last chunk, when it was skipped: its message indexes follow it
         while pos < size:
             head = f.read(9)
             if len(head) < 9:
@@ -256,12 +293,26 @@ class SalvagedBag:
                     entries, chunk = self._mcap_chunk(file_index, body, pos + 9, schemas, typedefs)
                 except (ValueError, RuntimeError, struct.error, SalvageError, zstd.ZstdError) as exc:
                     report.notes.append(f"skipped a damaged chunk at byte {pos:,} ({exc})")
+                    report.skipped.append(_skipped(path, pos, exc))
+                    damaged = report.skipped[-1]
                     entries, chunk = 0, None
+                else:
+                    damaged = None
                 if chunk is not None:
                     self._chunks.append((file_index, chunk))
                     report.chunks += 1
                     report.messages += entries
+            elif op == 0x07 and damaged is not None:  # message index after a damaged chunk: what it held
+                body = f.read(length)
+                try:
+                    cid, n = struct.unpack_from("<HI", body, 0)
+                    pairs = [t for t, _ in struct.iter_unpack("<QQ", body[6:6 + n // 16 * 16])]
+                    damaged["_by_channel"][cid] = damaged["_by_channel"].get(cid, 0) + len(pairs)
+                    damaged["_stamps"].extend(pairs)
+                except struct.error:
+                    pass
             elif op in (0x03, 0x04, 0x05):
+                damaged = None
                 body = f.read(length)
                 entry = self._mcap_record(file_index, op, body, 0, schemas, typedefs)
                 if entry is not None:  # an unchunked message: a chunk of its own, stored plain
@@ -271,6 +322,7 @@ class SalvagedBag:
                     report.chunks += 1
                     report.messages += 1
             else:
+                damaged = None if op != 0x07 else damaged
                 f.seek(length, 1)
             pos += 9 + length
             report.good_bytes = pos
@@ -287,7 +339,8 @@ class SalvagedBag:
             raise ValueError("chunk records overrun the chunk")
         raw = _decompress(body[data_off:data_off + rlen], compression, usize)
         if crc and zlib.crc32(raw) != crc:
-            raise ValueError("chunk CRC mismatch")
+            raise ValueError(f"chunk CRC mismatch: its data is damaged (CRC32 {zlib.crc32(raw):08x}, "
+                             f"recorded {crc:08x})")
         entries = []
         pos = 0
         while pos + 9 <= len(raw):
@@ -323,6 +376,10 @@ class SalvagedBag:
             if (file_index, cid) in self._conns:
                 return log_time, cid, body_pos + 22, len(body) - 22
         return None
+
+
+def _skipped(path: Path, pos: int, exc: Exception) -> dict:
+    return {"file": path.name, "byte": pos, "reason": str(exc), "_by_channel": {}, "_stamps": []}
 
 
 def _read_ros1_record(f: BinaryIO, pos: int, size: int) -> tuple[dict[str, bytes], int, int] | str:

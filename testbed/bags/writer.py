@@ -23,7 +23,9 @@ import json
 import logging
 import os
 import shutil
+import struct
 import tempfile
+import zlib
 from collections import Counter
 from functools import partial
 from pathlib import Path
@@ -125,8 +127,10 @@ class BagWriter:
                     mode = CompressionMode.STORAGE if self.storage == "mcap" else CompressionMode.MESSAGE
                     writer.set_compression(mode, CompressionFormat.ZSTD)
             writer.open()
-            if self.compress and self.format == "ros2" and self.storage == "mcap":
-                _fast_chunk_compression(writer)
+            if self.format == "ros2" and self.storage == "mcap":
+                if self.compress:
+                    _fast_chunk_compression(writer)
+                _chunk_crcs(writer)
         except Exception:
             self._remove_tmp()
             raise
@@ -373,6 +377,56 @@ def _fast_chunk_compression(writer: Writer2) -> None:
     storage = getattr(writer, "storage", None)
     if storage is not None and getattr(storage, "compression", None) == "zstd" and hasattr(storage, "compressor"):
         storage.compressor = partial(zstd.compress, level=1)
+
+
+def _chunk_crcs(writer: Writer2) -> None:
+    """Every MCAP chunk carries the CRC32 of its uncompressed records (the Chunk record's
+    ``uncompressed_crc``), so a reader detects damage inside a chunk instead of decoding it.
+
+    rosbags writes 0 there ("not computed"). Its storage writer is wrapped: the CRC is taken of
+    the records as they are compressed, and written into the chunk record's CRC field once the
+    record is on disk (a 4-byte in-place write). Should rosbags change its layout, the field is
+    checked to be where the MCAP spec puts it and still 0 before anything is written, and the bag
+    is left as rosbags wrote it otherwise (with a warning).
+    """
+    storage = getattr(writer, "storage", None)
+    close_chunk = getattr(storage, "close_chunk", None)
+    if storage is None or close_chunk is None or not all(hasattr(storage, a) for a in ("compressor", "bio", "path")):
+        log.warning("rosbags' MCAP writer has an unexpected layout: chunks are written without CRCs")
+        return
+    crcs: list[int] = []
+    warned: list[bool] = []
+    compress = storage.compressor
+
+    def compress_with_crc(data: bytes) -> bytes:
+        crcs.append(zlib.crc32(data))
+        return compress(data)
+
+    def close_chunk_with_crc() -> None:
+        bio = storage.bio
+        crcs.clear()
+        start = bio.tell()
+        close_chunk()
+        end = bio.tell()
+        # Chunk record: op 0x06, u64 length, then u64 start, u64 end, u64 uncompressed size, u32 crc
+        crc_at = start + 9 + 24
+        if len(crcs) != 1 or end < crc_at + 4:
+            return
+        bio.flush()  # the storage file is open write-only: its header is read back on a second handle
+        with open(storage.path, "rb") as f:
+            f.seek(start)
+            head = f.read(crc_at + 4 - start)
+        if len(head) == crc_at + 4 - start and head[0] == 0x06 and head[-4:] == b"\0\0\0\0":
+            bio.seek(crc_at)
+            bio.write(struct.pack("<I", crcs[0]))
+            bio.seek(end)
+        elif not warned:
+            warned.append(True)
+            log.warning("%s: the MCAP chunk record is not where expected; chunks are written without CRCs",
+                        storage.path)
+
+    storage.compressor = compress_with_crc
+    storage.close_chunk = close_chunk_with_crc
 
 
 def bag_size(path: Path | str) -> int:
