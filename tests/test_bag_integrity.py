@@ -13,6 +13,7 @@ import zlib
 import numpy as np
 import pytest
 
+from stack.messages import CameraFrame
 from testbed.bags import BagReader, BagWriter
 from testbed.bags import topics as T
 from testbed.bags.errors import TooManyBadMessagesError
@@ -20,9 +21,8 @@ from testbed.bags.salvage import zstd
 from testbed.record import write_image_truth
 from testbed.replay import BagTopics, replay_bag
 
-from test_rosbag_io import (OBJECTS, T_BASE_CAMERA, T_BASE_VELODYNE, T0, T_world_base, episode, make_frame,
-                            make_scan, record)
-from stack.messages import CameraFrame, WheelOdometry
+from test_rosbag_io import (OBJECTS, T_BASE_CAMERA, T_BASE_VELODYNE, T0, T_world_base, episode, make_scan,
+                            record)
 
 
 class NoDetections:
@@ -178,3 +178,23 @@ def test_a_bad_image_counts_the_same_with_and_without_sequential(tmp_path):
         with pytest.raises(TooManyBadMessagesError, match="1 bad messages on /camera/color/image_raw"):
             replay_bag(path, tmp_path / f"stop{parallel}", detector=NoDetections(), odometry="wheel",
                        parallel=parallel, write_outputs=False, topics=BagTopics(max_bad_messages=0))
+
+
+def test_damage_met_mid_stream_goes_on_from_the_intact_chunks(tmp_path):
+    """A bag without ground truth opens without reading every chunk: the damaged one is met while
+    the scans stream, and the stream goes on from the intact chunks, nothing twice."""
+    path = tmp_path / "scans"
+    rng = np.random.default_rng(3)
+    with BagWriter(path) as bag:
+        bag.write_extrinsics(T_BASE_VELODYNE, T_BASE_CAMERA, stamp=T0)
+        for i in range(12):
+            bag.write(make_scan(rng, T0 + 0.1 * i, 20000))
+    target, chunks = mcap_chunks(path)
+    scribble(target, chunks[1], seed=2)
+    with BagReader(path, require_camera=False) as bag:
+        assert not bag.salvaged  # nothing read at open touched the damaged chunk
+        stamps = [round(s.stamp, 6) for s in bag.scans()]
+        (chunk,) = bag.skipped_chunks
+    lost = chunk["messages"][T.LIDAR]
+    assert lost >= 1 and len(stamps) == 12 - lost and stamps == sorted(set(stamps))
+    assert not [s for s in stamps if chunk["start_s"] - 1e-6 <= s <= chunk["end_s"] + 1e-6]
