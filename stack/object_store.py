@@ -208,6 +208,8 @@ class MapObject:
     reason: str = ""  # why a candidate is not a label
     history: list[Observation] = field(default_factory=list)
     past: list[Observation] = field(default_factory=list)  # observations before it was retired and seen again
+    sightings: list[Observation] = field(default_factory=list)  # seen while retired, not yet enough to revive it
+    revive_after: int = 3  # sightings of a retired object that bring it back (RetireConfig.revive_sightings)
 
     @property
     def is_label(self) -> bool:
@@ -305,7 +307,17 @@ class ObjectStore:
                             np.array(obs.quat_xyzw, dtype=float), self.dims[obs.cls].copy(), obs.stamp, obs.stamp)
             self.objects[obj.id] = obj
         if obj.status == RETIRED and not obj.edited:
+            obj.sightings.append(obs)  # one stray detection near an emptied place does not bring it back
+            if len(obj.sightings) < obj.revive_after:
+                return obj
+            pending, obj.sightings = obj.sightings[:-1], []
             revive(obj)  # seen again: it comes back, labelled from what is seen from now on
+            for o in pending:
+                self._record(obj, o)
+        self._record(obj, obs)
+        return obj
+
+    def _record(self, obj: MapObject, obs: Observation) -> None:
         obj.history.append(obs)
         obj.observations += 1
         obj.first_seen, obj.last_seen = min(obj.first_seen, obs.stamp), max(obj.last_seen, obs.stamp)
@@ -313,7 +325,6 @@ class ObjectStore:
             label = label_of(obj.history, self.policy)
             if label is not None:
                 obj.xyz, obj.quat_xyzw, obj.score = label.xyz, label.quat_xyzw, label.score
-        return obj
 
     # --- persistence ---
 

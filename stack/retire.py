@@ -14,7 +14,7 @@ aligned depth image show there?
 A detection in the image associated with the object is a sighting and clears its misses. After
 ``misses`` empty views (and at least ``min_span_s`` between the first and the last) the object is
 retired: its row stays in the store with status ``retired`` and it is no label. An object seen
-again after that comes back: its observations start afresh (the earlier ones are kept in
+again after that (``revive_sightings`` detections associated with it) comes back: its observations start afresh (the earlier ones are kept in
 ``past``), so the label is where it is now. Hand-edited rows are never retired.
 
 The checker knows nothing of where the images come from: a pose, intrinsics and a depth image.
@@ -48,6 +48,8 @@ class RetireConfig(BaseModel):
     tolerance_m: float = Field(0.08, gt=0.0, description="depth beyond the object's extent that counts as "
                                "in front of it (occluded) or behind it (empty)")
     min_observations: int = Field(3, ge=1, description="objects with fewer observations are not checked")
+    revive_sightings: int = Field(3, ge=1, description="detections of a retired object that bring it back "
+                                  "(fewer leave it retired)")
 
 
 @dataclass
@@ -108,7 +110,12 @@ class Retirement:
         seen = set(seen_ids)
         out = []
         for obj in store:
-            if obj.edited or obj.status == RETIRED:
+            if obj.edited:
+                continue
+            if obj.status == RETIRED:  # its place seen empty again: the sightings so far were strays
+                if obj.sightings and obj.id not in seen and \
+                        classify(obj.xyz, obj.size, T_map_cam, info, depth_m, self.config) == EMPTY:
+                    obj.sightings.clear()
                 continue
             c = self.counts.setdefault(obj.id, MissCount())
             if obj.id in seen:
@@ -126,7 +133,8 @@ class Retirement:
             c.misses += 1
             c.last = stamp
             if c.misses >= self.config.misses and abs(c.last - c.first) >= self.config.min_span_s:
-                retire(obj, f"place seen empty in {c.misses} images from t = {c.first:.1f} s to {c.last:.1f} s")
+                retire(obj, f"place seen empty in {c.misses} images from t = {c.first:.1f} s to {c.last:.1f} s",
+                       self.config.revive_sightings)
                 self.retired.append((obj.id, stamp))
                 out.append(obj.id)
         return out
@@ -139,8 +147,8 @@ class Retirement:
                 "verdicts": dict(self.verdicts), "config": self.config.model_dump()}
 
 
-def retire(obj, reason: str) -> None:
-    obj.status, obj.reason = RETIRED, reason
+def retire(obj, reason: str, revive_after: int = 3) -> None:
+    obj.status, obj.reason, obj.revive_after, obj.sightings = RETIRED, reason, int(revive_after), []
 
 
 def revive(obj) -> None:

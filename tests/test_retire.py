@@ -9,7 +9,7 @@ import pytest
 from stack.messages import CameraFrame, CameraInfo, Detection, LidarScan
 from stack.object_store import ObjectStore, Observation
 from stack.pipeline import DopeSlam
-from stack.retire import EMPTY, OCCLUDED, OUT_OF_VIEW, PRESENT, RETIRED, RetireConfig, Retirement, classify
+from stack.retire import EMPTY, OCCLUDED, OUT_OF_VIEW, PRESENT, RETIRED, RetireConfig, Retirement, classify, retire
 from stack.transforms import inv
 
 INFO = CameraInfo.from_fov(160, 120, 120.0)
@@ -94,13 +94,31 @@ def test_edited_rows_are_never_retired():
 def test_a_retired_object_seen_again_comes_back_where_it_is_now():
     store = _store_with_object()
     obj = store.objects[1]
-    obj.status = RETIRED
-    back = store.add(Observation(5.0, "Yogurt", np.array([0.2, 0.0, 1.0]), np.array([0, 0, 0, 1.0])))
-    assert back is obj and obj.status != RETIRED
-    assert len(obj.history) == 1 and len(obj.past) == 5
+    retire(obj, "test", revive_after=3)
+    seen = [Observation(5.0 + 0.1 * k, "Yogurt", np.array([0.2, 0.0, 1.0]), np.array([0, 0, 0, 1.0]))
+            for k in range(3)]
+    for o in seen[:2]:  # fewer sightings than revive_after: still retired, nothing of them in its label
+        assert store.add(o) is obj and obj.status == RETIRED and obj.history and len(obj.sightings) <= 2
+    back = store.add(seen[2])
+    assert back is obj and obj.status != RETIRED and obj.sightings == []
+    assert len(obj.history) == 3 and len(obj.past) == 5
     assert np.allclose(obj.xyz, [0.2, 0.0, 1.0])  # labelled from what is seen now, not the old place
     store.publish()
     assert obj.is_label
+
+
+def test_stray_sightings_of_a_retired_object_are_cleared_by_its_empty_place():
+    store = _store_with_object()
+    obj = store.objects[1]
+    retire(obj, "test", revive_after=3)
+    stray = Observation(5.0, "Yogurt", obj.xyz.copy(), np.array([0, 0, 0, 1.0]))
+    store.add(stray)
+    store.add(stray)
+    assert obj.status == RETIRED and len(obj.sightings) == 2
+    Retirement(RetireConfig()).view(store, np.eye(4), INFO, depth_image("empty"), [], 6.0)
+    assert obj.sightings == []  # the place was seen empty since: the strays do not add up
+    store.add(stray)
+    assert obj.status == RETIRED
 
 
 # --- through the pipeline -----------------------------------------------------------------------
