@@ -198,3 +198,20 @@ def test_damage_met_mid_stream_goes_on_from_the_intact_chunks(tmp_path):
     lost = chunk["messages"][T.LIDAR]
     assert lost >= 1 and len(stamps) == 12 - lost and stamps == sorted(set(stamps))
     assert not [s for s in stamps if chunk["start_s"] - 1e-6 <= s <= chunk["end_s"] + 1e-6]
+
+
+def test_a_damaged_first_chunk_loses_its_messages_only(tmp_path):
+    """The first chunk also holds the channel definitions; the summary repeats them, so the later
+    chunks' messages are still read (here /tf_static went with the first chunk: the extrinsics are given)."""
+    msgs = episode(seed=13, n_scans=12, n_points=20000)
+    path = tmp_path / "run"
+    record(path, "ros2", "mcap", msgs)
+    target, chunks = mcap_chunks(path)
+    scribble(target, chunks[0], seed=4)
+    with BagReader(path, T_base_lidar=T_BASE_VELODYNE, T_base_camera=T_BASE_CAMERA) as bag:
+        got = list(bag.frames())
+        (chunk,) = bag.skipped_chunks
+    assert chunk["byte"] == chunks[0][0] and chunk["messages"][T.TF_STATIC] == 1
+    sensors = sum(not isinstance(m, CameraFrame) for m in msgs)
+    lost = sum(n for topic, n in chunk["messages"].items() if topic in (T.LIDAR, T.WHEEL_ODOM))
+    assert sum(not isinstance(m, CameraFrame) for m in got) == sensors - lost > 0

@@ -113,6 +113,19 @@ class SalvagedBag:
                     report = self._walk_mcap(index, f, path, typedefs)
             self.reports.append(report)
         self.typestore.register(typedefs)
+        # messages whose connection was defined only in a damaged chunk are kept when the summary
+        # (MCAP) or the index section (ROS 1) defines it again; the others cannot be decoded
+        kept: list[tuple[int, _Chunk]] = []
+        for report in self.reports:
+            report.chunks = report.messages = 0
+        for file_index, chunk in self._chunks:
+            chunk.entries = [e for e in chunk.entries if (file_index, e[1]) in self._conns]
+            if chunk.entries:
+                chunk.start = chunk.entries[0][0]
+                kept.append((file_index, chunk))
+                self.reports[file_index].chunks += 1
+                self.reports[file_index].messages += len(chunk.entries)
+        self._chunks = kept
         for index, report in enumerate(self.reports):
             for skipped in report.skipped:
                 by_id = skipped.pop("_by_channel")
@@ -261,8 +274,7 @@ class SalvagedBag:
             elif op == 0x02:
                 cid = struct.unpack("<I", header["conn"])[0]
                 sec, nsec = struct.unpack("<II", header["time"])
-                if (file_index, cid) in self._conns:
-                    entries.append((sec * 10**9 + nsec, cid, data_pos, dlen))
+                entries.append((sec * 10**9 + nsec, cid, data_pos, dlen))  # connection known later, maybe
             pos = data_pos + dlen
         return entries
 
@@ -373,8 +385,7 @@ class SalvagedBag:
                 self._conns[(file_index, cid)] = (topic, normalize_msgtype(name))
         elif op == 0x05:  # message: channel, sequence, log time, publish time, data
             cid, _seq, log_time, _pub = struct.unpack_from("<HIQQ", body, 0)
-            if (file_index, cid) in self._conns:
-                return log_time, cid, body_pos + 22, len(body) - 22
+            return log_time, cid, body_pos + 22, len(body) - 22  # its channel may come later (the summary)
         return None
 
 
