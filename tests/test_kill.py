@@ -67,3 +67,32 @@ def test_record_killed_leaves_no_bag_and_the_next_one_cleans_up(tmp_path):
         w.write_metadata(0.0, {"x": 1})
     assert not any(p.exists() for p in leftovers)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rec", "rec2"]
+
+
+def _complete_or_absent(out: Path, names: tuple[str, ...]) -> None:
+    if out.exists():
+        assert all((out / n).exists() for n in names), sorted(p.name for p in out.iterdir())
+
+
+@pytest.mark.slow
+def test_run_and_replay_killed_leave_complete_outputs_or_none(tmp_path):
+    env = {**os.environ, "DOPESLAM_TORCH_THREADS": "1"}
+    cli = [sys.executable, "-m", "testbed.cli"]
+    oracle = ["--detector", "testbed.oracle_detector:OracleDetector"]
+    run_out, needs = tmp_path / "run", ("report.json", "labels.json", "labels.xlsx", "estimate_tum.txt")
+    rng = random.Random(11)
+    _kill_at([*cli, "run", "--duration", "2", *oracle, "--out", str(run_out)], rng.uniform(4.0, 14.0), env)
+    _complete_or_absent(run_out, needs)
+    bag = tmp_path / "bag"
+    r = subprocess.run([*cli, "record", "--bag", str(bag), "--duration", "1.5", "--seed", "3"], cwd=REPO, env=env,
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rep_out = tmp_path / "replay"
+    _kill_at([*cli, "replay", str(bag), "--out", str(rep_out)], rng.uniform(3.0, 10.0), env)
+    _complete_or_absent(rep_out, ("report.json", "labels.json", "estimate_tum.txt"))
+    for cmd, out in (([*cli, "run", "--duration", "2", *oracle, "--out", str(run_out)], run_out),
+                     ([*cli, "replay", str(bag), "--out", str(rep_out)], rep_out)):
+        r = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)  # the next run cleans up
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert (out / "report.json").exists() and staging_entries(out) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "replay", "run"]
