@@ -445,8 +445,8 @@ def test_damaged_chunk_is_skipped_when_salvaging(tmp_path, fmt, storage, name):
     path = tmp_path / name
     record(path, fmt, storage, msgs)
     target = path if path.is_file() else next(p for p in path.iterdir() if p.suffix == ".mcap")
-    # Break the second chunk's compressed frame (lz4 / zstd magic), leaving the index intact. Neither
-    # format checksums chunks as rosbags writes them, so damage inside the data may go unnoticed.
+    # Break the second chunk's compressed frame (lz4 / zstd magic), leaving the index intact. (Damage
+    # inside an MCAP chunk's data is caught by its CRC, tests/test_bag_integrity.py; ROS 1 has none.)
     magic = b"\x04\x22\x4d\x18" if fmt == "ros1" else b"\x28\xb5\x2f\xfd"
     data = target.read_bytes()
     second = data.index(magic, data.index(magic) + 1)
