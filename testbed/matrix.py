@@ -5,7 +5,9 @@ A :class:`Cell` is a scenario, a seed and options (``dopeslam run``'s short name
 Every cell resolves to one :class:`testbed.settings.RunConfig` and is keyed by :func:`cell_key`: a
 hash of the scenario file's content, the seed, the resolved config, the detector's weights and
 thresholds files and the package version. A cell's outputs live in ``OUT/cells/<key>/``; a cell
-whose folder holds a complete ``report.json`` is not run again (resume).
+whose folder holds a complete ``report.json`` is not run again (resume). A cell with the option
+``job = "perception-cache"`` builds one episode's perception cache for the labelling environment
+instead (``dopeslam evaluate-policy --jobs N``), keyed by that cache's identity.
 
 Backends (:func:`run_cells`):
 
@@ -46,8 +48,8 @@ log = logging.getLogger(__name__)
 VOLATILE = re.compile(r"^(wall_seconds|real_time_factor|time_split_s\..*|timings?\..*|.*_hz|.*\.fps|fps|"
                       r"provenance\.(command|git_commit|git_dirty|weights|fpr_thresholds|scenario))$")
 RETRIES = 1  # a failed cell runs once more before it becomes an error row
-SHORT_KEYS = {"loop_closure": "loop_closure.enabled"}
-JOBS = ("run", "perception-cache")  # option names of `dopeslam test` cases
+SHORT_KEYS = {"loop_closure": "loop_closure.enabled"}  # option names of `dopeslam test` cases
+JOBS = ("run", "perception-cache")  # what a cell runs (its option "job"; see cell_job)
 
 
 class MatrixError(DopeSlamError, ValueError):
