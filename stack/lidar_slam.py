@@ -92,35 +92,6 @@ class LidarOdometryConfig(BaseModel):
         )
 
 
-class ConfigFileError(DopeSlamError, ValueError):
-    """A configuration file that cannot be used; names the file, the field and what was expected."""
-
-
-def load_config(path: str | Path | None = None, **overrides) -> LidarOdometryConfig:
-    """Defaults, then the YAML file's keys (if given), then ``overrides``."""
-    data: dict = {}
-    if path is not None:
-        import yaml
-
-        path = Path(path)
-        try:
-            loaded = yaml.safe_load(path.read_text())
-        except OSError as exc:
-            raise ConfigFileError(f"{path}: cannot read ({exc.strerror})") from exc
-        except yaml.YAMLError as exc:
-            raise ConfigFileError(f"{path}: not valid YAML ({exc})") from exc
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigFileError(f"{path}: expected a mapping of option: value, got {type(loaded).__name__}")
-        data.update(loaded or {})
-    data.update(overrides)
-    try:
-        return LidarOdometryConfig(**data)
-    except ValidationError as exc:
-        where = str(path) if path is not None else "lidar odometry config"
-        msgs = "; ".join(f"field '{'.'.join(map(str, e['loc']))}': {e['msg']}" for e in exc.errors())
-        raise ConfigFileError(f"{where}: {msgs}") from exc
-
-
 # ---------------------------------------------------------------------------------------------
 # SE(3) exponential and logarithm, as 6-vectors (v, omega): used for constant-velocity motion
 

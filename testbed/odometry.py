@@ -26,7 +26,7 @@ import numpy as np
 
 from sim.episode import Episode
 from stack import metrics
-from stack.lidar_slam import LidarOdometry, LidarOdometryConfig, WheelOdometryTrack
+from stack.lidar_slam import LidarOdometryConfig
 from stack.messages import CameraFrame, LidarScan, WheelOdometry
 from stack.transforms import transform_points
 from testbed.io import write_json
@@ -110,16 +110,25 @@ def _topdown_png(path: Path, map_world: np.ndarray, gt: np.ndarray, est: np.ndar
 
 def run_odometry(scenario=None, seed: int | None = None, out_dir: str | os.PathLike = "out/odometry",
                  duration: float | None = None, wheel: bool = True, config: LidarOdometryConfig | None = None,
-                 T_base_velodyne: np.ndarray | None = None, plot: bool = True, loop_closure: bool = False) -> dict:
+                 T_base_velodyne: np.ndarray | None = None, plot: bool = True, loop_closure: bool = False,
+                 odometry=None, loop_closure_config=None) -> dict:
     """Run an episode with the LiDAR (no camera), odometry on every scan, score, write the outputs.
 
-    ``T_base_velodyne`` overrides the extrinsic the odometry is given (the episode's otherwise), to
-    show what a miscalibrated robot does. Returns the ``odometry.json`` contents.
+    The episode's messages go through the stack's pipeline (:class:`stack.pipeline.DopeSlam`) with no
+    detector, as ``dopeslam run`` sends them. ``odometry``: None (KISS-ICP with ``config``), a name
+    for :func:`stack.interfaces.load_odometry` (``wheel``, ``MODULE:CLASS``, an entry point's name) or
+    a callable ``T_base_lidar -> Odometry``. ``T_base_velodyne`` overrides the extrinsic the odometry
+    is given (the episode's otherwise), to show what a miscalibrated robot does. Returns the
+    ``odometry.json`` contents.
 
-    ``loop_closure``: the camera runs too (key frames only) and a loop closer (``testbed/loop_closing.py``)
-    corrects the trajectory; ``ate_rmse_m`` is then the closed-loop figure, and ``odometry.json`` adds
-    ``loop_closures``, ``loop_candidates_rejected``, ``false_loop_closures``, ``ate_rmse_odometry_only_m``.
+    ``loop_closure``: the camera runs too (key frames only) and a loop closer (``testbed/loop_closing.py``,
+    settings ``loop_closure_config``, a ``stack.config.LoopClosureSection``) corrects the trajectory;
+    ``ate_rmse_m`` is then the closed-loop figure, and ``odometry.json`` adds ``loop_closures``,
+    ``loop_candidates_rejected``, ``false_loop_closures``, ``ate_rmse_odometry_only_m``.
     """
+    from stack.pipeline import DopeSlam
+    from testbed.run import detector_name, make_odometry
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     wall0 = time.perf_counter()
@@ -127,69 +136,77 @@ def run_odometry(scenario=None, seed: int | None = None, out_dir: str | os.PathL
     if loop_closure:
         from testbed.loop_closing import LoopClosingRun, key_frame_scenario
 
-        scenario, lc_config = key_frame_scenario(scenario)
-        lc = LoopClosingRun(config=lc_config)
+        section = loop_closure_config
+        scenario, lc_config = key_frame_scenario(scenario, None if section is None else section.closure_config())
+        lc = LoopClosingRun(None if section is None else section.vocabulary, config=lc_config)
     with Episode(scenario, seed=seed, duration=duration, camera=loop_closure, lidar=True) as ep:
         E = ep.T_base_velodyne if T_base_velodyne is None else np.asarray(T_base_velodyne, dtype=float)
-        odo = LidarOdometry(E, config)
-        track = WheelOdometryTrack() if wheel else None
+        odo = make_odometry(odometry, E, config)
+        pipe = DopeSlam(odo, None, ep.T_base_camera, {}, loop_closer=lc, map_objects=False)
         accumulated = _MapAccumulator()
+        scans = 0
         last_report = time.perf_counter()
         for msg in ep.frames():
             if isinstance(msg, LidarScan):
-                T_map_base = odo.process(msg)
-                if T_map_base is not None and odo.last_points_base is not None:
-                    accumulated.add(transform_points(T_map_base, odo.last_points_base))
+                scans += 1
+                T_map_base = pipe.on_scan(msg)
+                points = getattr(odo, "last_points_base", None)
+                if T_map_base is not None and points is not None:
+                    accumulated.add(transform_points(T_map_base, points))
+            elif isinstance(msg, CameraFrame):
                 if lc is not None:
-                    lc.on_scan(odo, T_map_base)
-            elif isinstance(msg, CameraFrame) and lc is not None:
-                lc.on_image(msg)
-            elif isinstance(msg, WheelOdometry) and track is not None:
-                track.add(msg)
+                    pipe.on_image(msg)
+            elif isinstance(msg, WheelOdometry):
+                pipe.on_wheel_odometry(msg)
             if time.perf_counter() - last_report > 10.0:
                 last_report = time.perf_counter()
-                log.info("odometry: sim t = %.1f / %.1f s, %d scans, %.1f scans/s", msg.stamp, ep.duration,
-                         odo.stats.scans_in, odo.stats.hz)
-        if len(odo) < 2:
-            raise RuntimeError(f"{ep.sc.name}: only {len(odo)} scans registered; nothing to score")
-        stamps, T_map_base = odo.trajectory()
+                log.info("odometry: sim t = %.1f / %.1f s, %d scans, %d registered", msg.stamp, ep.duration,
+                         scans, pipe.registered)
+        if len(odo.trajectory()[0]) < 2:
+            raise RuntimeError(f"{ep.sc.name}: only {len(odo.trajectory()[0])} scans registered; nothing to score")
+        result = pipe.finish()
+        stamps, T_odom, T_map_base = result.stamps, result.T_map_base_odometry, result.T_map_base
         gt = ep.T_world_base_at(stamps)
         T_world_map = gt[0]
         if lc is not None:  # the closed-loop trajectory is the estimate; its map is placed with it
-            T_odom, T_map_base = T_map_base, lc.finish(stamps, T_map_base)
             accumulated = _MapAccumulator()
-            for pts in lc.map_points():
+            for pts in result.map_points:
                 accumulated.add(pts)
         est = T_world_map @ T_map_base
         report = {"scenario": ep.sc.name, "seed": ep.seed, "sim_seconds": float(ep.duration)}
         report.update(score(stamps, T_map_base, gt))
+        stats = getattr(odo, "stats", None)
+        seconds = pipe.timing["odometry"]
         report.update({
-            "scans": odo.stats.scans_in,
-            "scans_registered": odo.stats.scans_used,
-            "odometry_hz": odo.stats.hz,
-            "odometry_seconds": odo.stats.seconds,
+            "scans": stats.scans_in if stats is not None else scans,
+            "scans_registered": stats.scans_used if stats is not None else pipe.registered,
+            "odometry_hz": stats.hz if stats is not None else (scans / seconds if seconds > 0 else None),
+            "odometry_seconds": stats.seconds if stats is not None else seconds,
             "episode_wall_seconds": time.perf_counter() - wall0,
             "T_base_velodyne": E.tolist(),
             "map_origin_offset_m": float(np.linalg.norm(T_world_map[:3, 3] - ep.T_world_map[:3, 3])),
-            "warnings": {k: v for k, v in vars(odo.stats).items() if k not in ("scans_in", "scans_used", "seconds")},
-            "config": odo.config.model_dump(),
         })
+        if stats is not None:
+            report["warnings"] = {k: v for k, v in vars(stats).items() if k not in ("scans_in", "scans_used", "seconds")}
+        if getattr(odo, "config", None) is not None:
+            report["config"] = odo.config.model_dump()
+        report["odometry_component"] = detector_name(odo)
         if lc is not None:
             report.update(lc.summary(stamps, T_odom, T_map_base, T_world_map, ep.T_world_base_at))
         metrics.write_tum(out / "estimate_tum.txt", stamps, est)
         metrics.write_tum(out / "groundtruth_tum.txt", stamps, gt)
 
         wheel_world = None
-        if track is not None and len(track) >= 2:
-            w_stamps, w_poses = track.trajectory()
+        if wheel and len(result.wheel_stamps) >= 2:
+            w_stamps, w_poses = result.wheel_stamps, result.T_odom_base
             w_gt = ep.T_world_base_at(w_stamps)
-            report["wheel_odometry"] = {"messages": len(track), **score(w_stamps, w_poses, w_gt)}
+            report["wheel_odometry"] = {"messages": len(pipe.wheel), **score(w_stamps, w_poses, w_gt)}
             wheel_world = w_gt[0] @ w_poses
             metrics.write_tum(out / "wheel_odometry_tum.txt", w_stamps, wheel_world)
             metrics.write_tum(out / "wheel_groundtruth_tum.txt", w_stamps, w_gt)
 
         if plot:
-            title = (f"{ep.sc.name} seed {ep.seed}: KISS-ICP ATE {100 * report['ate_rmse_m']:.1f} cm, "
+            title = (f"{ep.sc.name} seed {ep.seed}: odometry ATE {100 * report['ate_rmse_m']:.1f} cm, "
                      f"RPE {report['rpe_trans_pct']:.2f} %")
             if "wheel_odometry" in report:
                 title += f"; wheels ATE {100 * report['wheel_odometry']['ate_rmse_m']:.1f} cm"

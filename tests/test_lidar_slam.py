@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from stack import metrics
-from stack.lidar_slam import (ConfigFileError, LidarOdometry, LidarOdometryConfig, WheelOdometryTrack,
-                              load_config, se3_exp, se3_log)
+from stack.config import ConfigError, resolve_config
+from stack.lidar_slam import LidarOdometry, LidarOdometryConfig, WheelOdometryTrack, se3_exp, se3_log
 from stack.messages import LidarScan, WheelOdometry
 from stack.transforms import from_xyz_rpy, interpolate, make_T
 
@@ -272,19 +272,20 @@ def test_se3_exp_log():
 
 
 def test_config_defaults_yaml_and_errors(tmp_path):
-    cfg = load_config()
+    """The odometry's settings are the [odometry] section of the one config (stack.config)."""
+    cfg = resolve_config().odometry
     assert cfg.max_range_m == 30.0 and cfg.min_range_m == 0.5 and cfg.deskew
     f = tmp_path / "odo.yaml"
-    f.write_text("voxel_size_m: 0.4\nmax_range_m: 20\n")
-    cfg = load_config(f, min_range_m=0.3)
+    f.write_text("odometry:\n  voxel_size_m: 0.4\n  max_range_m: 20\n")
+    cfg = resolve_config(f, ["odometry.min_range_m=0.3"], environ={}).odometry
     assert (cfg.voxel_size_m, cfg.max_range_m, cfg.min_range_m) == (0.4, 20.0, 0.3)
     assert cfg.to_kiss().mapping.voxel_size == 0.4
-    f.write_text("voxel_size_m: -1\n")
-    with pytest.raises(ConfigFileError, match=r"odo\.yaml: field 'voxel_size_m'"):
-        load_config(f)
-    f.write_text("voxel_size: 0.4\n")
-    with pytest.raises(ConfigFileError, match=r"field 'voxel_size'.*not permitted"):
-        load_config(f)
+    f.write_text("odometry:\n  voxel_size_m: -1\n")
+    with pytest.raises(ConfigError, match=r"odo\.yaml.*odometry\.voxel_size_m"):
+        resolve_config(f, environ={})
+    f.write_text("odometry:\n  voxel_size: 0.4\n")
+    with pytest.raises(ConfigError, match=r"odometry\.voxel_size"):
+        resolve_config(f, environ={})
 
 
 def test_wheel_odometry_track_starts_at_identity(caplog):

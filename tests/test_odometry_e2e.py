@@ -85,3 +85,32 @@ def test_without_deskew_the_bound_fails(tmp_path):
                           config=LidarOdometryConfig(deskew=False), plot=False)
     assert report["ate_rmse_m"] > ATE_BOUND_M
     assert report["rpe_trans_pct"] > 0.7  # measured 0.85 %; 0.48 % with deskew
+
+
+def test_settings_it_does_not_apply_and_a_bad_odometry_are_one_line_errors(tmp_path, capsys):
+    from testbed.cli import main
+
+    assert main(["odometry", "--out", str(tmp_path / "o"), "--set", "detector.stages=3"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "detector.stages" in err and "does not apply" in err and len(err.splitlines()) == 1
+    assert main(["odometry", "--out", str(tmp_path / "o"), "--odometry", "no_such_module:Odo"]) == 2
+    assert "no_such_module" in capsys.readouterr().err
+    assert main(["odometry", "--out", str(tmp_path / "o"), "--set", "odometry.voxel_size_m=-1"]) == 2
+    assert "odometry.voxel_size_m" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # nothing ran
+
+
+@pytest.mark.slow
+def test_the_wheel_odometry_through_the_seam_is_the_wheel_track_scored_beside_kiss_icp(good_run, tmp_path):
+    """``--odometry wheel`` drives the same pipeline: its trajectory is the wheel track that the KISS-ICP
+    run scores beside its own, sampled at the sweeps."""
+    from testbed.odometry import run_odometry
+
+    _, good = good_run
+
+    report = run_odometry(short_drive(), seed=0, out_dir=tmp_path, duration=DURATION, odometry="wheel", plot=False)
+    run_wheel = good["wheel_odometry"]
+    assert report["odometry_component"] == "stack.wheel_odometry:WheelOnlyOdometry"
+    assert report["ate_rmse_m"] > good["ate_rmse_m"]  # wheels drift; the LiDAR does not
+    assert report["ate_rmse_m"] == pytest.approx(run_wheel["ate_rmse_m"], rel=0.25)
+    assert report["wheel_odometry"]["ate_rmse_m"] == run_wheel["ate_rmse_m"]  # the same messages
