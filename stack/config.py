@@ -47,6 +47,7 @@ from stack.evidence import EvidenceConfig
 from stack.io import write_text
 from stack.lidar_slam import LidarOdometryConfig
 from stack.loops.closure import LoopClosureConfig
+from stack.retire import RetireConfig
 
 ENV_PREFIX = "DOPESLAM_"
 ENV_SEPARATOR = "__"  # DOPESLAM_<SECTION>__<KEY>
@@ -118,6 +119,16 @@ class LoopClosureSection(LoopClosureConfig):
         return LoopClosureConfig(**self.model_dump(exclude={"enabled", "vocabulary"}))
 
 
+class RetireSection(RetireConfig):
+    """Retiring labels whose place the depth images show empty; the rest are :class:`stack.retire.RetireConfig`'s settings."""
+
+    enabled: bool = Field(True, description="retire labels whose place is seen empty (off: a label stays until edited)")
+
+    def settings(self) -> RetireConfig | None:
+        """What ``DopeSlam(retire=...)`` takes: the settings, or None when retiring is off."""
+        return RetireConfig(**self.model_dump(exclude={"enabled"})) if self.enabled else None
+
+
 class ComponentsConfig(BaseModel):
     """Other people's parts, by import path; null: the bundled one (``stack.interfaces`` Protocols)."""
 
@@ -147,6 +158,7 @@ class StackConfig(BaseModel):
     evidence: EvidenceConfig = Field(default_factory=EvidenceConfig)
     store: StoreConfig = Field(default_factory=StoreConfig)
     loop_closure: LoopClosureSection = Field(default_factory=LoopClosureSection)
+    retire: RetireSection = Field(default_factory=RetireSection)
     components: ComponentsConfig = Field(default_factory=ComponentsConfig)
 
     def evidence_or_none(self) -> EvidenceConfig | None:
@@ -303,6 +315,13 @@ def apply_sets(config: BaseModel, sets: Mapping[str, Any], source: str = "--set"
         config = _validate(model, data, where)
         data = config.model_dump()
     return config
+
+
+def changed_keys(config: BaseModel) -> dict[str, Any]:
+    """``{'section.key': value}`` of every setting of ``config`` that differs from its model's default."""
+    have, want = config.model_dump(), type(config)().model_dump()
+    return {f"{section}.{key}": value for section, table in have.items() if isinstance(table, dict)
+            for key, value in table.items() if value != want[section].get(key)}
 
 
 def resolve_config(file: str | Path | None = None, sets: Mapping[str, Any] | Sequence[str] | None = None,

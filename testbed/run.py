@@ -160,7 +160,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     OUT/config.toml and the report gets its ``provenance``. ``faults``: ``NAME=VALUE`` sensor faults
     over the scenario's ``[faults]`` (``sim.faults``); ``store``: an object store file (.xlsx/.json)
     to start from and save the updated map to; ``retire``: retire labels whose place is seen empty
-    (True: ``stack.retire.RetireConfig()``, a config, or False); see ``testbed/dynamic.py``."""
+    (True: ``config``'s ``[retire]`` settings, or ``stack.retire.RetireConfig()`` without a config; a
+    ``RetireConfig``; or False); see ``testbed/dynamic.py``."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
@@ -170,6 +171,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         d = config.detector
         input_mode, stages, fpr, weights, dope_every = d.input, d.stages, d.fpr, d.weights, d.every
         loop_closure = config.loop_closure.enabled
+        if retire is True:
+            retire = config.retire.settings() or False
         _check_config(config)
     detector = detector or make_detector(input_mode, stages, fpr, weights, None if config is None else config.detector)
     dims = {c: s.dims for c, s in load_catalog().items()}

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from testbed.commands.options import add_config_options, config_error
 from testbed.commands.run import add_dope_options
 
 # name -> module under testbed.experiments with run(out_dir, **options) and table(result)
@@ -31,7 +32,8 @@ def register(sub) -> None:
     p.add_argument("--faults", type=_fault_sweep, default=None, metavar="NAME=R,R,...;NAME=...",
                    help="faults: the faults and rates to sweep (default: every fault, three rates; docs/faults.md)")
     p.add_argument("--jobs", type=int, default=1, help="darkness: episodes at once (local processes)")
-    add_dope_options(p, defaults=False)
+    add_dope_options(p, defaults=False, unset=" (default: the config's when set there, else the experiment's own)")
+    add_config_options(p)
     p.set_defaults(func=run)
 
 
@@ -58,14 +60,41 @@ def _levels(text: str) -> tuple[float, ...]:
     return levels
 
 
+# the DOPE flags and their config keys: a flag beats the config, the config beats the experiment's own default
+DOPE_FLAGS = {"input_mode": "detector.input", "stages": "detector.stages", "weights": "detector.weights"}
+
+
+def experiment_config(args, module):
+    """The settings of ``--config``, ``DOPESLAM_SECTION__KEY`` and ``--set`` (None when they change
+    nothing); a setting the experiment does not apply (``module.APPLIES``) raises ``ConfigError``."""
+    from stack.config import changed_keys, resolve_config
+    from testbed.commands.options import refuse_unapplied
+    from testbed.settings import RunConfig
+
+    config = resolve_config(args.config, list(args.config_sets), model=RunConfig)
+    refuse_unapplied(config, module.APPLIES, f"experiment {args.name}")
+    return config if changed_keys(config) else None
+
+
 def run(args) -> int:
-    module = importlib.import_module(EXPERIMENTS[args.name])
-    out = args.out or f"out/{args.name}"
-    opts = {"scenario": args.scenario, "seed": args.seed, "duration": args.duration, "runs": args.runs,
-            "seconds": args.seconds, "frames": args.frames, "stages": args.stages, "input_mode": args.input_mode,
-            "weights": args.weights, "levels": args.levels, "faults": args.faults, "jobs": args.jobs}
     import inspect
 
+    from stack.config import ConfigError, changed_keys
+
+    module = importlib.import_module(EXPERIMENTS[args.name])
+    out = args.out or f"out/{args.name}"
+    try:
+        config = experiment_config(args, module)
+    except ConfigError as e:
+        return config_error(f"experiment {args.name}", e)
+    opts = {"scenario": args.scenario, "seed": args.seed, "duration": args.duration, "runs": args.runs,
+            "seconds": args.seconds, "frames": args.frames, "stages": args.stages, "input_mode": args.input_mode,
+            "weights": args.weights, "levels": args.levels, "faults": args.faults, "jobs": args.jobs,
+            "config": config}
+    changed = changed_keys(config) if config is not None else {}
+    for dest, key in DOPE_FLAGS.items():
+        if opts[dest] is None and key in changed:
+            opts[dest] = changed[key]
     accepted = inspect.signature(module.run).parameters
     result = module.run(out, **{k: v for k, v in opts.items() if k in accepted and v is not None})
     print(module.table(result))

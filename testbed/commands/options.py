@@ -22,7 +22,7 @@ FLAG_KEYS = {
     "input_mode": "detector.input", "stages": "detector.stages", "fpr": "detector.fpr",
     "weights": "detector.weights", "dope_every": "detector.every",
     "policy": "store.policy", "detector": "components.detector", "odometry": "components.odometry",
-    "loop_closure": "loop_closure.enabled", "vocabulary": "loop_closure.vocabulary",
+    "loop_closure": "loop_closure.enabled", "vocabulary": "loop_closure.vocabulary", "retire": "retire.enabled",
 }
 
 

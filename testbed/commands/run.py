@@ -40,8 +40,9 @@ def add_dynamic_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--store", default=None, metavar="PATH",
                    help="an object store (labels.xlsx or labels.json) from an earlier run: start from it and "
                         "save the updated map there (rows you marked edited stay as you left them)")
-    p.add_argument("--retire", action=argparse.BooleanOptionalAction, default=True,
-                   help="retire labels whose place the depth images show empty (stack.retire)")
+    p.add_argument("--retire", action=argparse.BooleanOptionalAction, default=None,
+                   help="retire labels whose place the depth images show empty (stack.retire; default: the "
+                        "config's retire.enabled, on)")
 
 
 def check_dynamic_options(args, command: str) -> int | None:
@@ -186,7 +187,7 @@ def run(args) -> int:
         with watching(view):
             report = run_episode(r.scenario, args.out, r.seed, r.light, policy=policy, duration=r.duration,
                                  detector=detector, config=config, faults=args.faults,
-                                 store=args.store, retire=args.retire, odometry=odometry)
+                                 store=args.store, odometry=odometry)
     except ConfigError as e:
         return config_error("run", e)
     except ImportPathError as e:  # the odometry's constructor failed

@@ -7,16 +7,21 @@ from pathlib import Path
 
 import numpy as np
 
+from testbed.experiments import EPISODE_APPLIES
 from testbed.io import write_json
 
 log = logging.getLogger(__name__)
 LEVELS = (1.0, 0.5, 0.25, 0.1, 0.0)
+APPLIES = EPISODE_APPLIES  # the config it honours (input and stages are swept)
 
 
 def run(out_dir, scenario=None, seed=None, levels=LEVELS, inputs=("rgb", "depth"), stages=6, duration=None,
-        policy="robust-mean", input_mode: str | None = None, jobs: int = 1) -> dict:
+        policy="robust-mean", input_mode: str | None = None, jobs: int = 1, config=None, weights=None) -> dict:
     """``input_mode`` (the CLI's ``--input``): sweep that input only. The episodes run through the
-    matrix runner (``jobs`` at once, each in ``OUT/cells/<key>/``; a rerun skips finished ones)."""
+    matrix runner (``jobs`` at once, each in ``OUT/cells/<key>/``; a rerun skips finished ones).
+    ``config``: a ``testbed.settings.RunConfig``; its settings changed from the defaults go into every
+    cell (input, stages and weights aside, which are this sweep's own)."""
+    from stack.config import changed_keys
     from sim.scenario import DEFAULT_SCENARIO, load_scenario
     from testbed.matrix import Cell, run_cells
 
@@ -26,7 +31,10 @@ def run(out_dir, scenario=None, seed=None, levels=LEVELS, inputs=("rgb", "depth"
     out.mkdir(parents=True, exist_ok=True)
     sc = load_scenario(scenario)
     seed = sc.seed if seed is None else seed
-    opts = {"stages": stages, "policy": policy, **({"duration": duration} if duration is not None else {})}
+    own = {"detector.input", "detector.stages", "detector.weights"}
+    opts = {**({k: v for k, v in changed_keys(config).items() if k not in own} if config is not None else {}),
+            "stages": stages, "policy": policy, **({"duration": duration} if duration is not None else {}),
+            **({"weights": weights} if weights is not None else {})}
     cells = [Cell(scenario or DEFAULT_SCENARIO, seed, {**opts, "input": m, "light": light}) for m in inputs for light in levels]
     rows = []
     for cell, res in zip(cells, run_cells(cells, out, jobs=jobs)):

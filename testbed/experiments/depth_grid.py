@@ -27,7 +27,12 @@ GRID_CM = {"P1": (-30.0, 60.0), "P2": (30.0, 80.0), "P3": (0.0, 110.0), "P4": (-
 KEYS = ("dx_cm", "dz_cm", "distance_cm", "accuracy_pct")
 
 
-def run(out_dir, weights=None, stages=6, frames=10, seed=0, input_mode="rgb") -> dict:
+APPLIES = {"detector"}  # the config it honours (docs/configuration.md)
+
+
+def run(out_dir, weights=None, stages=6, frames=10, seed=0, input_mode="rgb", config=None) -> dict:
+    """``config``: a ``testbed.settings.RunConfig`` whose [detector] settings replace the shipped
+    detector's (input, stages and weights are this experiment's; every belief sum passes FPR)."""
     from sim.objects import load_catalog
     from stack.dope_fpr import DopeDetector, FprThresholds
     from testbed.experiments.static_rig import StaticRig
@@ -35,8 +40,9 @@ def run(out_dir, weights=None, stages=6, frames=10, seed=0, input_mode="rgb") ->
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     dims = {c: s.dims for c, s in load_catalog().items()}
-    det = DopeDetector(weights=weights, input=input_mode, stages=stages, fpr=True, dims=dims,
-                       thresholds=FprThresholds())  # belief sums all pass; the depth check stays
+    settings = {} if config is None else config.detector.dope_kwargs()
+    det = DopeDetector(**{**settings, "weights": weights, "input": input_mode, "stages": stages, "fpr": True},
+                       dims=dims, thresholds=FprThresholds())  # belief sums all pass; the depth check stays
     result = {"weights": str(det.weights_path), "weights_meta": _meta(det), "stages": stages, "frames_per_point": frames,
               "input": input_mode, "grid_cm": GRID_CM}
     rows, pnp_rows = {}, {}

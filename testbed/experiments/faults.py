@@ -11,6 +11,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from testbed.experiments import EPISODE_APPLIES
+
 log = logging.getLogger(__name__)
 
 # fault -> the rates swept (the first is the fault-free value)
@@ -27,11 +29,15 @@ SWEEP = {
     "flicker": (0.0, 0.3, 0.6),
     "wheel_slip": (0.0, 0.1, 0.3),
 }
+APPLIES = EPISODE_APPLIES  # the config it honours (docs/configuration.md)
 
 
 def run(out_dir, scenario=None, seed: int | None = 0, duration: float | None = None, faults=None,
-        stages=6, input_mode="rgb", weights=None, detector=None) -> dict:
-    """One episode per (fault, rate); the fault-free episode is run once and shared by every curve."""
+        stages=6, input_mode="rgb", weights=None, detector=None, config=None) -> dict:
+    """One episode per (fault, rate); the fault-free episode is run once and shared by every curve.
+    ``config``: a ``testbed.settings.RunConfig`` whose :data:`APPLIES` sections replace the shipped stack's."""
+    from testbed.experiments import episode_config
+
     from testbed.io import write_json
     from testbed.run import run_episode
 
@@ -49,7 +55,8 @@ def run(out_dir, scenario=None, seed: int | None = 0, duration: float | None = N
                 log.info("faults: %s = %s", name, rate)
                 rep = run_episode(scenario, out / "runs" / (f"{name}_{rate:g}" if not clean else "clean"), seed,
                                   input_mode=input_mode, stages=stages, weights=weights, duration=duration,
-                                  detector=detector, faults=() if clean else (f"{name}={rate}",))
+                                  detector=detector, faults=() if clean else (f"{name}={rate}",),
+                                  config=episode_config(config, input_mode, stages, weights))
                 s = rep["labels_summary"]
                 cache[key] = {"labels": s["labels_in_map"], "correct": s["correct_labels"],
                               "false_labels": s["false_labels"], "objects": s["objects"],

@@ -12,6 +12,7 @@ import numpy as np
 
 from stack.object_store import label_of
 from stack.transforms import transform_points
+from testbed.experiments import EPISODE_APPLIES, episode_config
 from testbed.run import run_episode
 from testbed.scoring import FALSE_LABEL_M
 from testbed.io import write_json
@@ -88,16 +89,22 @@ def stack_map(rep: dict) -> dict:
     return s
 
 
+APPLIES = EPISODE_APPLIES  # the labelling policy is the paper's (last)
+
+
 def paper_precision(paper: dict) -> dict:
     """The paper's rows with our definition: each method put one label per object on the map (6)."""
     return {m: (6 - f) / 6 for m, f in (paper.get("false_labels_of_6") or {}).items()}
 
 
-def run(out_dir, scenario=None, seed=None, stages=6, input_mode="rgb", weights=None, duration=None) -> dict:
+def run(out_dir, scenario=None, seed=None, stages=6, input_mode="rgb", weights=None, duration=None,
+        config=None) -> dict:
+    """``config``: a ``testbed.settings.RunConfig`` whose :data:`APPLIES` sections replace the shipped
+    stack's (the experiment keeps its input, stages, weights and the paper's policy ``last``)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rep = run_episode(scenario, out / "episode", seed, None, input_mode, stages, True, "last", duration, weights,
-                      keep_detections=True)
+                      keep_detections=True, config=episode_config(config, input_mode, stages, weights, "last"))
     rows = per_object_rows(rep["_observations"], rep["_objects"], rep["_T_world_map"])
     result = {"scenario": rep["scenario"], "seed": rep["seed"], "stages": stages, "input": input_mode,
               "false_label_threshold_cm": 100 * FALSE_LABEL_M, "per_object": rows, "summary": summarise(rows),

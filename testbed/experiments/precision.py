@@ -30,7 +30,13 @@ def configs():
     return [f"D{i}{j}" for i in range(1, 7) for j in ("F", "0")]
 
 
-def run(out_dir, runs=5, seconds=60.0, weights=None, input_mode="depth", seed=0, timing_frames=10) -> dict:
+APPLIES = {"detector"}  # the config it honours (docs/configuration.md)
+
+
+def run(out_dir, runs=5, seconds=60.0, weights=None, input_mode="depth", seed=0, timing_frames=10,
+        config=None) -> dict:
+    """``config``: a ``testbed.settings.RunConfig`` whose [detector] settings replace the shipped
+    detector's (input and weights are this experiment's; six stages; one depth window at the object)."""
     from sim.objects import load_catalog
     from stack.dope_fpr import DopeDetector
     from testbed.experiments.static_rig import StaticRig
@@ -39,7 +45,9 @@ def run(out_dir, runs=5, seconds=60.0, weights=None, input_mode="depth", seed=0,
     out.mkdir(parents=True, exist_ok=True)
     dims = {c: s.dims for c, s in load_catalog().items()}
     window = [(DISTANCE_M - WINDOW_M / 2, DISTANCE_M + WINDOW_M / 2)]
-    det = DopeDetector(weights=weights, input=input_mode, stages=6, fpr=True, dims=dims, depth_windows=window)
+    settings = {} if config is None else config.detector.dope_kwargs()
+    det = DopeDetector(**{**settings, "weights": weights, "input": input_mode, "stages": 6, "fpr": True,
+                          "depth_windows": window}, dims=dims)
     n_frames = max(1, int(round(seconds * CAMERA_HZ)))
     per_run = {c: [] for c in configs()}
     for r in range(runs):
