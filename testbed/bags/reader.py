@@ -46,6 +46,7 @@ from .convert import (COLOUR_ENCODINGS, DEPTH_ENCODINGS, TIME_FIELD_NAMES, Cuboi
 from .errors import (BagError, BagReadError, CorruptBagError, MissingExtrinsicError, MissingTopicError,
                      TooManyBadMessagesError,
                      UnsupportedEncodingError)
+from .mcap_summary import summary_crc_problem
 from .salvage import SalvagedBag, SalvageError
 
 log = logging.getLogger(__name__)
@@ -162,6 +163,10 @@ def _open_source(path: Path, salvage: Salvage) -> _AnyReaderSource | _SalvageSou
     if salvage == "always":
         return _salvage(path, salvageable, None)
     try:
+        for mcap in (p for p in salvageable if p.suffix == ".mcap"):
+            problem = summary_crc_problem(mcap)
+            if problem is not None:
+                raise ValueError(f"{mcap.name}: {problem}")
         return _AnyReaderSource(path)
     except Exception as exc:  # rosbags raises several types for a damaged file; all mean "cannot open"
         if isinstance(exc, PermissionError):

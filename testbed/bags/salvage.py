@@ -326,7 +326,11 @@ class SalvagedBag:
             elif op in (0x03, 0x04, 0x05):
                 damaged = None
                 body = f.read(length)
-                entry = self._mcap_record(file_index, op, body, 0, schemas, typedefs)
+                try:
+                    entry = self._mcap_record(file_index, op, body, 0, schemas, typedefs)
+                except (ValueError, KeyError, struct.error) as exc:  # a damaged definition (e.g. in the summary)
+                    report.notes.append(f"skipped a damaged record (op 0x{op:02x}) at byte {pos:,} ({exc})")
+                    entry = None
                 if entry is not None:  # an unchunked message: a chunk of its own, stored plain
                     t, cid, offset, mlen = entry
                     self._chunks.append((file_index, _Chunk(pos + 9, length, "", length,

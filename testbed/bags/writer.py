@@ -143,6 +143,11 @@ class BagWriter:
         try:
             writer.close()
             self._writer = None
+            if self.format == "ros2" and self.storage == "mcap" and self._tmpdir is not None:
+                from .mcap_summary import write_summary_crc
+
+                for mcap in self._tmpdir.rglob("*.mcap"):
+                    write_summary_crc(mcap)
             self._move_into_place()
         except BaseException:
             self.abort()
