@@ -36,6 +36,7 @@ def run(out_dir, weights=None, stages=6, frames=10, seed=0, input_mode="rgb", co
     from sim.objects import load_catalog
     from stack.dope_fpr import DopeDetector, FprThresholds
     from testbed.experiments.static_rig import StaticRig
+    from testbed.progress import bar
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -46,13 +47,14 @@ def run(out_dir, weights=None, stages=6, frames=10, seed=0, input_mode="rgb", co
     result = {"weights": str(det.weights_path), "weights_meta": _meta(det), "stages": stages, "frames_per_point": frames,
               "input": input_mode, "grid_cm": GRID_CM}
     rows, pnp_rows = {}, {}
-    with StaticRig("E", seed=seed) as rig:
+    with StaticRig("E", seed=seed) as rig, bar(len(GRID_CM) * frames, "depth grid", unit="frame") as progress:
         for name, (x_cm, z_cm) in GRID_CM.items():
             T_cam_obj = rig.place(x_cm / 100, z_cm / 100)
             truth = T_cam_obj[:3, 3]
             found, found_pnp = [], []
             for _ in range(frames):
                 dets = [d for d in det.detect(rig.frame()) if d.cls == "E" and d.fpr_pass]
+                progress.update(1)
                 if dets:
                     best = max(dets, key=lambda d: float(np.mean(d.peak_scores)))
                     found.append(best.T_cam_obj[:3, 3])

@@ -37,8 +37,8 @@ def run(out_dir, scenario=None, seed: int | None = 0, duration: float | None = N
     """One episode per (fault, rate); the fault-free episode is run once and shared by every curve.
     ``config``: a ``testbed.settings.RunConfig`` whose :data:`APPLIES` sections replace the shipped stack's."""
     from testbed.experiments import episode_config
-
     from testbed.io import write_json
+    from testbed.progress import runs
     from testbed.run import run_episode
 
     out = Path(out_dir)
@@ -46,27 +46,28 @@ def run(out_dir, scenario=None, seed: int | None = 0, duration: float | None = N
     sweep = {k: tuple(v) for k, v in (faults or SWEEP).items()}
     cache: dict[tuple, dict] = {}
     result = {"scenario": scenario or "experiment3_columns", "seed": seed, "duration_s": duration, "faults": {}}
-    for name, rates in sweep.items():
-        rows = []
-        for rate in rates:
-            clean = rate == SWEEP.get(name, (0.0,))[0]
-            key = ("clean",) if clean else (name, rate)
-            if key not in cache:
-                log.info("faults: %s = %s", name, rate)
-                rep = run_episode(scenario, out / "runs" / (f"{name}_{rate:g}" if not clean else "clean"), seed,
-                                  input_mode=input_mode, stages=stages, weights=weights, duration=duration,
-                                  detector=detector, faults=() if clean else (f"{name}={rate}",),
-                                  config=episode_config(config, input_mode, stages, weights))
-                s = rep["labels_summary"]
-                cache[key] = {"labels": s["labels_in_map"], "correct": s["correct_labels"],
-                              "false_labels": s["false_labels"], "objects": s["objects"],
-                              "mean_error_m": s["mean_error_m"], "ate_rmse_m": rep["odometry"]["ate_rmse_m"],
-                              "stale_labels": s.get("stale_labels", 0),
-                              "fault_counts": (rep.get("faults") or {}).get("counts")}
-            rows.append({"rate": rate, **cache[key]})
-        result["faults"][name] = rows
-        _plot(out / f"fault_{name}.png", name, rows, result)
-        write_json(out / "faults.json", result)
+    pairs = [(name, rate) for name, rates in sweep.items() for rate in rates]
+    rows: dict[str, list] = {}
+    for name, rate in runs(pairs, "faults", unit="setting"):
+        clean = rate == SWEEP.get(name, (0.0,))[0]
+        key = ("clean",) if clean else (name, rate)
+        if key not in cache:
+            log.info("faults: %s = %s", name, rate)
+            rep = run_episode(scenario, out / "runs" / (f"{name}_{rate:g}" if not clean else "clean"), seed,
+                              input_mode=input_mode, stages=stages, weights=weights, duration=duration,
+                              detector=detector, faults=() if clean else (f"{name}={rate}",),
+                              config=episode_config(config, input_mode, stages, weights))
+            s = rep["labels_summary"]
+            cache[key] = {"labels": s["labels_in_map"], "correct": s["correct_labels"],
+                          "false_labels": s["false_labels"], "objects": s["objects"],
+                          "mean_error_m": s["mean_error_m"], "ate_rmse_m": rep["odometry"]["ate_rmse_m"],
+                          "stale_labels": s.get("stale_labels", 0),
+                          "fault_counts": (rep.get("faults") or {}).get("counts")}
+        rows.setdefault(name, []).append({"rate": rate, **cache[key]})
+        if len(rows[name]) == len(sweep[name]):  # the fault's curve is complete
+            result["faults"][name] = rows[name]
+            _plot(out / f"fault_{name}.png", name, rows[name], result)
+            write_json(out / "faults.json", result)
     return result
 
 

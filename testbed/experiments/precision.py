@@ -40,6 +40,7 @@ def run(out_dir, runs=5, seconds=60.0, weights=None, input_mode="depth", seed=0,
     from sim.objects import load_catalog
     from stack.dope_fpr import DopeDetector
     from testbed.experiments.static_rig import StaticRig
+    from testbed.progress import bar
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -50,6 +51,7 @@ def run(out_dir, runs=5, seconds=60.0, weights=None, input_mode="depth", seed=0,
                           "depth_windows": window}, dims=dims)
     n_frames = max(1, int(round(seconds * CAMERA_HZ)))
     per_run = {c: [] for c in configs()}
+    progress = bar(runs * (n_frames + min(timing_frames, n_frames) * 6), "precision", unit="frame")
     for r in range(runs):
         counts = {c: {"tp": 0, "fp": 0} for c in configs()}
         fps = {}
@@ -58,6 +60,7 @@ def run(out_dir, runs=5, seconds=60.0, weights=None, input_mode="depth", seed=0,
             frames = [rig.frame() for _ in range(n_frames)]
         for i, frame in enumerate(frames):
             by_stage = det.detect_stages(frame, range(1, 7))
+            progress.update(1)
             for s, dets in by_stage.items():
                 for d in dets:
                     if d.cls != "E":
@@ -75,6 +78,7 @@ def run(out_dir, runs=5, seconds=60.0, weights=None, input_mode="depth", seed=0,
             t0 = time.perf_counter()
             for f in sample:
                 det.detect(f)
+            progress.update(len(sample))
             fps[s] = len(sample) / (time.perf_counter() - t0)
         det.stages = 6
         for c, v in counts.items():
@@ -83,6 +87,7 @@ def run(out_dir, runs=5, seconds=60.0, weights=None, input_mode="depth", seed=0,
                                "fps": fps[int(c[1])], "tp": v["tp"], "fp": v["fp"], "ti": n_frames})
         log.info("run %d/%d done: D6F precision %.3f recall %.3f", r + 1, runs, per_run["D6F"][-1]["precision"],
                  per_run["D6F"][-1]["recall"])
+    progress.close()
     result = {"setup": {"distance_m": DISTANCE_M, "window_m": WINDOW_M, "light": 0.0, "input": input_mode,
                         "runs": runs, "seconds": seconds, "frames_per_run": n_frames, "weights": str(det.weights_path),
                         "false_positive_m": 0.05}}
