@@ -1,12 +1,14 @@
 """The shipped weights on rendered frames: an object in view is found with a small position error;
-the detector's interface (stage counts, FPR verdicts, inputs) behaves as the harness expects."""
+the detector's interface (stage counts, FPR verdicts) behaves as the harness expects (its arguments
+and threads: ``tests/unit/test_dope_detector_unit.py``)."""
 import numpy as np
 import pytest
 
-from stack.dope_fpr import DopeDetector, FprThresholds, default_weights
+from helpers.dope_detector import needs_rgb_weights
+from stack.dope_fpr import DopeDetector, FprThresholds
 from stack.messages import CameraFrame
 
-pytestmark = pytest.mark.skipif(not default_weights("rgb").exists(), reason="no shipped RGB weights")
+pytestmark = needs_rgb_weights
 
 
 def _render(cls="E", distance=0.8, light=1.0, seed=0):
@@ -73,13 +75,6 @@ def test_rgb_in_the_dark_finds_nothing():
     assert det.detect(frame) == []
 
 
-def test_missing_dims_or_bad_input_are_errors():
-    with pytest.raises(ValueError, match="dims"):
-        DopeDetector(input="rgb")
-    with pytest.raises(ValueError, match="input"):
-        DopeDetector(input="thermal", dims={"E": (0.1, 0.14, 0.035)})
-
-
 @pytest.mark.slow
 def test_fpr_rejects_a_detection_the_depth_image_contradicts():
     frame, _, dims = _render("E", 0.8)
@@ -89,18 +84,3 @@ def test_fpr_rejects_a_detection_the_depth_image_contradicts():
     found = [d for d in det.detect(frame) if d.cls == "E"]
     assert found and all(not d.fpr_pass and d.extra["fpr_rejected_by"] == "depth" for d in found)
     assert all(d.extra["depth_fit"]["ok"] is False for d in found)
-
-
-def test_torch_threads_from_the_environment(monkeypatch):
-    import torch
-
-    before = torch.get_num_threads()
-    monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "1")
-    try:
-        DopeDetector(input="rgb", dims={"E": (0.1, 0.14, 0.035)})
-        assert torch.get_num_threads() == 1
-        monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "two")
-        with pytest.raises(ValueError, match="DOPESLAM_TORCH_THREADS"):
-            DopeDetector(input="rgb", dims={"E": (0.1, 0.14, 0.035)})
-    finally:
-        torch.set_num_threads(before)

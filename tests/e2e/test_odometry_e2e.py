@@ -1,5 +1,6 @@
 """End to end: a short simulated drive through ``dopeslam odometry``'s code path, scored against ground
-truth, and the same drive with a miscalibrated LiDAR or without deskewing, which the bound catches."""
+truth, and the same drive with a miscalibrated LiDAR or without deskewing, which the bound catches
+(the command line: ``tests/unit/test_odometry_unit.py``)."""
 from __future__ import annotations
 
 import json
@@ -21,14 +22,6 @@ def short_drive():
 
     sc = load_scenario("experiment3_columns")
     return sc.model_copy(update={"route": sc.route.model_copy(update={"start_pause": 0.5, "speed": 1.0})})
-
-
-def test_command_line():
-    from testbed.cli import build_parser
-    from testbed.commands.odometry import run
-
-    args = build_parser().parse_args(["odometry", "shelf_corridor", "--out", "d", "--seed", "3", "--duration", "5"])
-    assert (args.scenario, args.out, args.seed, args.duration, args.func) == ("shelf_corridor", "d", 3, 5.0, run)
 
 
 @pytest.fixture(scope="module")
@@ -85,19 +78,6 @@ def test_without_deskew_the_bound_fails(tmp_path):
                           config=LidarOdometryConfig(deskew=False), plot=False)
     assert report["ate_rmse_m"] > ATE_BOUND_M
     assert report["rpe_trans_pct"] > 0.7  # measured 0.85 %; 0.48 % with deskew
-
-
-def test_settings_it_does_not_apply_and_a_bad_odometry_are_one_line_errors(tmp_path, capsys):
-    from testbed.cli import main
-
-    assert main(["odometry", "--out", str(tmp_path / "o"), "--set", "detector.stages=3"]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "detector.stages" in err and "does not apply" in err and len(err.splitlines()) == 1
-    assert main(["odometry", "--out", str(tmp_path / "o"), "--odometry", "no_such_module:Odo"]) == 2
-    assert "no_such_module" in capsys.readouterr().err
-    assert main(["odometry", "--out", str(tmp_path / "o"), "--set", "odometry.voxel_size_m=-1"]) == 2
-    assert "odometry.voxel_size_m" in capsys.readouterr().err
-    assert not (tmp_path / "o").exists()  # nothing ran
 
 
 @pytest.mark.slow

@@ -32,7 +32,7 @@ def test_bad_option(dopeslam_run):
 def test_fixture_from_a_test_file_outside_the_repository(pytester, monkeypatch):
     monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "1")
     pytester.makepyfile(test_user=USER_TESTS)
-    assert not str(pytester.path).startswith(str(Path(__file__).resolve().parent.parent))
+    assert not str(pytester.path).startswith(str(Path(__file__).resolve().parents[2]))
     result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-q")
     result.assert_outcomes(passed=2, errors=0, failed=1)
     result.stdout.fnmatch_lines(["*option 'light': expected a light level from 0 to 1, got 5*"])

@@ -1,14 +1,14 @@
 """`dopeslam test` end to end on very short episodes (the ground-truth detector, 2 s): exit codes,
-the JUnit file read back with a parser, a baseline written and compared, --json on stdout."""
+the JUnit file read back with a parser, a baseline written and compared, --json on stdout (its usage
+errors: ``tests/unit/test_suite_unit.py``)."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 import xml.etree.ElementTree as ET
 
 import pytest
+
+from helpers.cli import dopeslam
 
 SUITE = """name = "short"
 seeds = "0"
@@ -21,12 +21,6 @@ scenario = "experiment3_columns"
 "labels_summary.false_labels" = "== 0"
 "detection.frames" = ">= {frames}"
 """
-
-
-def dopeslam(*args):
-    env = {**os.environ, "DOPESLAM_TORCH_THREADS": "1"}
-    return subprocess.run([sys.executable, "-m", "testbed.cli", *map(str, args)], capture_output=True, text=True,
-                          env=env, timeout=600)
 
 
 @pytest.mark.slow
@@ -66,11 +60,3 @@ def test_run_json_prints_only_the_report(tmp_path):
     report = json.loads(r.stdout)
     assert report["labels_summary"]["objects"] == 6 and report["sim_seconds"] == pytest.approx(2.0)
     assert "labels_summary" in json.loads((tmp_path / "run" / "report.json").read_text())
-
-
-def test_usage_errors_exit_2_with_one_line():
-    for args in (["test", "no_such_suite"], ["test", "smoke", "--seeds", "x"], ["test", "smoke", "--set", "light=5"],
-                 ["test", "smoke", "--baseline", "/nonexistent/base"], ["test", "smoke", "--update-baseline"]):
-        r = dopeslam(*args)
-        assert r.returncode == 2 and "Traceback" not in r.stderr, (args, r.stderr)
-        assert len(r.stderr.strip().splitlines()) == 1 and r.stderr.startswith("dopeslam test: "), r.stderr

@@ -55,17 +55,6 @@ def test_a_topic_with_no_good_message_says_why(tmp_path):
         list(bag.scans())
 
 
-@pytest.mark.slow
-def test_record_with_sqlite3_storage_writes_a_readable_bag(tmp_path):
-    from testbed.record import record_episode
-
-    bag_path = tmp_path / "rec_sqlite"
-    record_episode(None, str(bag_path), "ros2", "sqlite3", 1, 1.5, None)
-    assert any(p.suffix == ".db3" for p in bag_path.iterdir())
-    with BagReader(bag_path) as bag:
-        assert len(list(bag.scans())) >= 5 and not bag.bad_message_summary()
-
-
 def test_a_stray_future_stamp_is_skipped_and_reported(tmp_path):
     from test_rosbag_io import T_BASE_CAMERA, T_BASE_VELODYNE
     from testbed.bags import BagWriter

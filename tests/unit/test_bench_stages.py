@@ -1,17 +1,6 @@
-"""The per-stage benchmark runs a tiny episode and prints its table (no timing asserted)."""
-import importlib.util
-from pathlib import Path
-
-import pytest
-
-BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_stages.py"
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("bench_stages", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+"""The per-stage benchmark's meter and options (its tiny episode and table:
+``tests/e2e/test_bench_stages_e2e.py``)."""
+from helpers.bench_stages import load_bench as _load
 
 
 def test_meter_excludes_inner_stages():
@@ -39,15 +28,3 @@ def test_meter_excludes_inner_stages():
 def test_bad_duration_is_one_line_error(capsys):
     assert _load().main(["--duration", "-1"]) == 2
     assert "--duration" in capsys.readouterr().err
-
-
-@pytest.mark.slow
-def test_bench_stages_prints_the_table(capsys, monkeypatch):
-    monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "1")
-    assert _load().main(["--duration", "0.5"]) == 0
-    out = capsys.readouterr().out
-    for row in ("rendering", "LiDAR ray casting", "KISS-ICP odometry", "DOPE network", "depth fit + FPR",
-                "fusion", "**all**", "GFLOP per image", "KissICP.register_frame"):
-        assert row in out, row
-    from stack.dope_fpr import DopeDetector
-    assert not hasattr(DopeDetector.detect, "__wrapped__")  # the benchmark put every metered method back

@@ -5,11 +5,11 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from helpers import ROOT
+
 HEAVY = ("pybullet", "torch", "kiss_icp", "gtsam", "rerun", "cv2", "pandas", "gymnasium", "sim")
 
 
@@ -138,14 +138,3 @@ def test_simulator_banner_goes_to_stderr():
     assert r.returncode == 0, r.stderr
     assert r.stdout == "result line\n", r.stdout
     assert "pybullet build time" in r.stderr  # the banner went to stderr, not away
-
-
-@pytest.mark.slow
-def test_a_short_run_prints_no_banner_on_stdout(tmp_path):
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "DOPESLAM_TORCH_THREADS": "1"}
-    r = subprocess.run([sys.executable, "-m", "testbed.cli", "run", "tests/data/labelling_small.toml", "--duration",
-                        "1.5", "--out", str(tmp_path / "run")], capture_output=True, text=True, cwd=ROOT,
-                       timeout=600, env=env)
-    assert r.returncode == 0, r.stderr[-2000:]
-    assert "pybullet build time" not in r.stdout and "EGL" not in r.stdout
-    assert r.stdout.splitlines()[0].startswith("labelling_small seed")

@@ -1,21 +1,17 @@
 """The stack's one config: files, environment and --set in that order, one-line errors naming the
-source and the key, the written config read back, the reference in docs/ kept to the model, and a
-short run's config.toml and provenance."""
+source and the key, the written config read back, the reference in docs/ kept to the model (a short
+run's config.toml and provenance: ``tests/e2e/test_config_e2e.py``)."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
+from helpers import ROOT
+from helpers.config import NO_ENV
 from stack.config import (ConfigError, StackConfig, apply_sets, dump_toml, env_sets, expand_grid, parse_grid,
                           read_file, reference_markdown, resolve_config, torch_threads, write_config)
 from testbed.settings import RunConfig, cache_dir
-
-ROOT = Path(__file__).resolve().parents[1]
-NO_ENV: dict = {}
 
 
 def test_defaults_are_the_shipped_stack():
@@ -203,41 +199,6 @@ def test_provenance_without_git_and_scenario_hash_follows_extends(tmp_path):
     assert scenario_sha256(child) != h and len(h) == 64
     p = provenance(seed=3, scenario=child, weights=None, thresholds=None, argv=["dopeslam", "run"])
     assert p["weights_sha256"] is None and p["seed"] == 3 and p["command"] == ["dopeslam", "run"]
-
-
-@pytest.mark.slow
-def test_short_run_writes_config_and_provenance(tmp_path):
-    out = tmp_path / "run"
-    cfg = tmp_path / "c.yaml"
-    cfg.write_text("detector:\n  every: 5\nevidence:\n  min_observations: 2\n")
-    r = subprocess.run([sys.executable, "-m", "testbed.cli", "run", "--duration", "4", "--seed", "1", "--out", str(out),
-                        "--config", str(cfg), "--set", "evidence.min_span_s=0.5"],
-                       capture_output=True, text=True, cwd=ROOT, env={**_env(), "DOPESLAM_STORE__GATE_M": "0.4"},
-                       timeout=600)
-    assert r.returncode == 0, r.stderr[-2000:]
-    written = resolve_config(out / "config.toml", None, NO_ENV, RunConfig)
-    assert (written.detector.every, written.evidence.min_observations, written.evidence.min_span_s) == (5, 2, 0.5)
-    assert written.store.gate_m == 0.4 and written.run.seed == 1 and written.run.duration == 4
-    report = json.loads((out / "report.json").read_text())
-    p = report["provenance"]
-    assert {"version", "git_commit", "weights_sha256", "fpr_thresholds_sha256", "scenario_sha256", "seed",
-            "command"} <= set(p)
-    from stack.dope_fpr import default_thresholds_path, default_weights, file_sha256
-
-    assert p["weights_sha256"] == file_sha256(default_weights("rgb"))
-    assert p["fpr_thresholds_sha256"] == file_sha256(default_thresholds_path("rgb"))
-    assert p["seed"] == 1 == report["seed"] and len(p["scenario_sha256"]) == 64
-    assert "--config" in p["command"] and p["version"]
-    n_images = report["detection"]["frames"]
-    assert 0 < n_images <= 10  # every 5th image of ~4 s at 10 Hz
-
-
-def _env() -> dict:
-    import os
-
-    env = {k: v for k, v in os.environ.items() if not k.startswith("DOPESLAM_")}
-    env["DOPESLAM_TORCH_THREADS"] = "1"
-    return env
 
 
 def test_a_setting_a_command_does_not_apply_is_refused():

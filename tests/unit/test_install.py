@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from helpers import ROOT
+
 try:
     import tomllib
 except ModuleNotFoundError:  # Python < 3.11
@@ -18,7 +20,6 @@ packaging = pytest.importorskip("packaging")
 from packaging.requirements import Requirement  # noqa: E402
 from packaging.specifiers import SpecifierSet  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
 RESOLUTION = json.loads((ROOT / "tests" / "data" / "kiss_icp_all_resolution.json").read_text())
 

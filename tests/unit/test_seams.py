@@ -1,29 +1,27 @@
 """Seams for other people's components: the bundled parts satisfy the protocols of ``stack.interfaces``;
 a detector or a labelling policy named by import path (``MODULE:ATTRIBUTE``) is loaded and runs through
 the pipeline; a bad path is one line and exit status 2; ``stack/`` never imports the simulator or the
-harness; the ground-truth detector is the upper bound of ``dopeslam run``."""
+harness. (The ground-truth detector, the upper bound of ``dopeslam run``: ``tests/e2e/test_seams_e2e.py``.)"""
 from __future__ import annotations
 
-import json
 import re
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from helpers import ROOT
 from stack.interfaces import (Detector, ImportPathError, LabellingPolicy, LoopCloser, Odometry, entry_point_names,
                               load_detector, load_import_path, load_odometry, odometry_factory, resolve_policy)
 from stack.object_store import POLICIES, Label, Observation
 from stack.messages import LidarScan, WheelOdometry
 from stack.pipeline import DopeSlam
 from test_pipeline import DIMS, T_BASE_CAM, LineOdometry, expected_xyz, image, pose_x, scan
-from test_run_e2e import short_scenario  # noqa: F401 (a fixture)
 from testbed.cli import main
 
-STACK = Path(__file__).resolve().parents[1] / "stack"
+STACK = ROOT / "stack"
 
 
 # --- the bundled parts satisfy the protocols -----------------------------------------------------------
@@ -347,19 +345,3 @@ def test_the_ground_truth_detector_needs_its_episode():
 
     with pytest.raises(RuntimeError, match="bind_episode"):
         OracleDetector().detect(image(0.0))
-
-
-# --- the upper bound: dopeslam run with the ground-truth detector -------------------------------------
-
-@pytest.mark.slow
-def test_the_ground_truth_detector_puts_every_label_within_2_cm(short_scenario, tmp_path):  # noqa: F811
-    out = tmp_path / "oracle"
-    assert main(["run", str(short_scenario), "--detector", "testbed.oracle_detector:OracleDetector",
-                 "--out", str(out), "--seed", "3"]) == 0
-    report = json.loads((out / "report.json").read_text())
-    s = report["labels_summary"]
-    assert report["detector"] == "testbed.oracle_detector:OracleDetector"
-    assert s["labelled"] == 6 and s["false_labels"] == 0, s["map_labels"]
-    errors = [r["error_m"] for r in report["labels"]]
-    assert max(errors) < 0.02, errors
-    assert report["detection"]["precision"] == 1.0

@@ -1,7 +1,9 @@
-"""The topological-map paper's detector: 31-d HOG, root-filter SVM training with hard negatives, the colour step."""
+"""The topological-map paper's detector: 31-d HOG, the linear SVM, non-maximum suppression, saving and
+loading (training with hard negatives and the colour step: ``tests/e2e/test_topomap_hog_e2e.py``)."""
 import numpy as np
 import pytest
 
+from helpers.topomap_hog import scene as _scene
 from stack.topomap.hog_detector import (HogDetector, TrainingImage, fhog, fit_colour_model, iou, nms, train_detector,
                                 train_linear_svm)
 
@@ -32,46 +34,6 @@ def test_linear_svm_separates_two_clouds():
     y = np.r_[np.ones(100), -np.ones(100)]
     w, b = train_linear_svm(X, y, C=1.0)
     assert np.mean(np.sign(X @ w + b) == y) > 0.95
-
-
-def _scene(rng, colour, H=120, W=160, with_object=True):
-    img = rng.integers(60, 120, (H, W, 3)).astype(np.uint8)
-    for _ in range(3):  # distractor blobs
-        x, y = rng.integers(0, W - 20), rng.integers(0, H - 20)
-        img[y:y + rng.integers(5, 20), x:x + rng.integers(5, 20)] = rng.integers(0, 255, 3)
-    boxes = []
-    if with_object:
-        h = int(rng.integers(30, 50))
-        w = h // 2
-        x, y = int(rng.integers(0, W - w)), int(rng.integers(0, H - h))
-        img[y:y + h, x:x + w] = colour
-        img[y + h // 3:y + h // 3 + 3, x + 3:x + w - 3] = 20  # a dark stripe: some shape
-        img[y + 2 * h // 3:y + 2 * h // 3 + 3, x + 3:x + w - 3] = 20
-        boxes.append([x, y, x + w, y + h])
-    return img, np.array(boxes, float).reshape(-1, 4)
-
-
-@pytest.mark.slow
-def test_detector_learns_a_shape_and_the_colour_step_rejects_the_wrong_colour():
-    rng = np.random.default_rng(1)
-    orange = (245, 140, 20)
-    train = []
-    for _ in range(25):
-        img, b = _scene(rng, orange)
-        train.append(TrainingImage(img, b, ["Box"] * len(b), np.ones(len(b))))
-    det = train_detector(train, ["Box"], n_components=1, cells_area=24, mining_rounds=1, mining_images=8,
-                         negatives_per_image=6, C=0.1)
-    det.colour = fit_colour_model(train, ["Box"], quantile=1.0)
-    img, b = _scene(np.random.default_rng(7), orange)
-    found = det.detect(img, threshold=-0.5)
-    assert found and found[0].cls == "Box"
-    assert iou(found[0].box[None], b)[0, 0] > 0.4
-    # the same shape painted blue: the shape filter still fires, the colour step removes it
-    blue_img, bb = _scene(np.random.default_rng(7), (30, 60, 220))
-    shape_only = [d for d in det.detect(blue_img, threshold=-0.5, colour_step=False) if iou(d.box[None], bb)[0, 0] > 0.4]
-    assert shape_only and shape_only[0].colour_pass is False
-    with_colour = [d for d in det.detect(blue_img, threshold=-0.5) if iou(d.box[None], bb)[0, 0] > 0.4]
-    assert not with_colour
 
 
 def test_save_and_load(tmp_path):

@@ -88,15 +88,3 @@ def test_retire_settings_come_from_the_config_and_the_flag():
     assert config_from_args(parse(["run", "--no-retire"]), environ={}).retire.settings() is None
     cfg = config_from_args(parse(["run", "--no-retire"]), environ={"DOPESLAM_RETIRE__ENABLED": "true"})
     assert cfg.retire.enabled is False  # the flag over the environment
-
-
-@pytest.mark.slow
-def test_the_faults_experiment_runs_each_episode_with_the_config(tmp_path):
-    from testbed.cli import main
-
-    out = tmp_path / "faults"
-    assert main(["-q", "experiment", "faults", "--duration", "2", "--faults", "lidar_drop=0,0.5", "--stages", "3",
-                 "--set", "evidence.min_observations=2", "--set", "retire.misses=4", "--out", str(out)]) == 0
-    for run in ("clean", "lidar_drop_0.5"):
-        cfg = resolve_config(out / "runs" / run / "config.toml", environ={}, model=RunConfig)
-        assert (cfg.detector.stages, cfg.evidence.min_observations, cfg.retire.misses) == (3, 2, 4)

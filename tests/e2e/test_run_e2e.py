@@ -1,0 +1,56 @@
+"""`dopeslam run` end to end on a short drive past the default scenario's objects, with the shipped
+DOPE weights, real KISS-ICP and the real object store (the experiments' options:
+``tests/unit/test_run_unit.py``)."""
+import json
+
+import pytest
+
+from stack.object_store import ObjectStore
+from testbed.cli import main
+
+
+@pytest.mark.slow
+def test_run_in_darkness_publishes_only_labels_it_can_stand_behind(short_dark_scenario, tmp_path):
+    """Depth input in the dark: the depth network often takes one object for another, so most places
+    hold detections of several classes. The map must not publish those guesses: the disputed places
+    stay candidates and the objects the network does tell apart are labelled, centimetres off. Seed 3
+    measured the E and the Cookies (2.0 and 1.2 cm), 26 candidates, and one false label: an
+    OrangeJuice that won the vote where the network sees the Yogurt and its slim stand as one
+    orange-juice-sized column (docs/results.md)."""
+    out = tmp_path / "dark"
+    assert main(["run", str(short_dark_scenario), "--input", "depth", "--out", str(out), "--seed", "3"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    s = report["labels_summary"]
+    assert s["correct_labels"] >= 2 and s["false_labels"] <= 1, s["map_labels"]
+    assert all(m["error_m"] < 0.05 for m in s["map_labels"] if m["verdict"] == "correct")
+    assert s["candidates"] >= 10  # the wrong-class detections are kept, not published
+    assert any("disagree" in c["reason"] or "outvoted" in c["reason"] for c in report["candidates"])
+
+
+@pytest.mark.slow
+def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", str(short_scenario), "--out", str(out), "--seed", "3"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    for key in ("scenario", "seed", "sim_seconds", "wall_seconds", "real_time_factor", "odometry", "detection",
+                "labels", "labels_summary"):
+        assert key in report
+    assert report["odometry"]["ate_rmse_m"] < 0.05
+    s = report["labels_summary"]
+    assert s["objects"] == 6
+    # The target for the default scenario (all labelled, no false label, mean <= 10 cm) on this
+    # short drive past all six (seeds 3 and 4 measured 1.9 and 1.7 cm); a broken transform chain, pose
+    # lookup or FPR puts labels metres off or lets a wrong-class detection label an object.
+    assert s["labelled"] == 6, report["labels"]
+    # the whole map, not the nearest label per object: no phantom or misplaced label anywhere
+    assert s["labels_in_map"] == 6 and s["false_labels"] == 0 and s["map_precision"] == 1.0, s["map_labels"]
+    assert s["mean_error_m"] < 0.10
+    assert report["detection"]["precision"] > 0.9
+    # the spreadsheet is the store: it loads back with the same objects
+    from sim.objects import load_catalog
+
+    store = ObjectStore.load(out / "labels.xlsx", dims={c: s.dims for c, s in load_catalog().items()})
+    assert len(store.labels()) == s["labels_in_map"] and len(store.candidates()) == s["candidates"]
+    for name in ("map.png", "estimate_tum.txt", "groundtruth_tum.txt", "labels.json"):
+        assert (out / name).stat().st_size > 0
+    assert "precision 100 %" in capsys.readouterr().out

@@ -1,0 +1,30 @@
+"""The detector's interface: bad arguments are errors, and the torch threads follow the environment
+(the shipped weights on rendered frames: ``tests/e2e/test_dope_detector.py``)."""
+import pytest
+
+from helpers.dope_detector import needs_rgb_weights
+from stack.dope_fpr import DopeDetector
+
+pytestmark = needs_rgb_weights
+
+
+def test_missing_dims_or_bad_input_are_errors():
+    with pytest.raises(ValueError, match="dims"):
+        DopeDetector(input="rgb")
+    with pytest.raises(ValueError, match="input"):
+        DopeDetector(input="thermal", dims={"E": (0.1, 0.14, 0.035)})
+
+
+def test_torch_threads_from_the_environment(monkeypatch):
+    import torch
+
+    before = torch.get_num_threads()
+    monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "1")
+    try:
+        DopeDetector(input="rgb", dims={"E": (0.1, 0.14, 0.035)})
+        assert torch.get_num_threads() == 1
+        monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "two")
+        with pytest.raises(ValueError, match="DOPESLAM_TORCH_THREADS"):
+            DopeDetector(input="rgb", dims={"E": (0.1, 0.14, 0.035)})
+    finally:
+        torch.set_num_threads(before)
