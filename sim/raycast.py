@@ -3,7 +3,7 @@
 PyBullet's ``rayTestBatch`` costs ~110-150 ms per full 32 x 1808 sweep on these machines, more than
 the sweep itself lasts. The static world is made of boxes (``sim.world.Box``), so rays are cast here
 against those boxes exactly (slab test), each box tested only against the azimuth columns and the rings it
-can reach. The caster holds the same boxes PyBullet holds; ``tests/test_sim_lidar.py`` checks both agree.
+can reach. The caster holds the same boxes PyBullet holds; ``tests/unit/test_sim_lidar.py`` checks both agree.
 
 Motion skew: each azimuth column fires at its own time within the sweep, from the sensor pose at that
 time; the points are reported in the sensor frame at their firing time, as a real spinning LiDAR does.

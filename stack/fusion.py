@@ -11,7 +11,7 @@ and ``T_cam_obj`` is DOPE's PnP result.
 
 The paper (section 3.3, eq. 1-2) writes the same thing as a hand-made homogeneous
 transformation matrix (HTM) for flat ground and a level, forward-looking camera;
-``paper_htm`` reproduces it and ``tests/test_fusion.py`` shows the chain reduces to it.
+``paper_htm`` reproduces it and ``tests/unit/test_fusion.py`` shows the chain reduces to it.
 """
 from __future__ import annotations
 

@@ -38,6 +38,8 @@ from stack.transforms import transform_points
 
 MAP_EVERY = 5  # every 5th registered sweep goes into the LiDAR map (a picture, not used for labels) ...
 MAP_POINT_STRIDE = 4  # ... with every 4th of its points
+MAP_POINT_LIMIT = 500_000  # past this many points the LiDAR map is thinned to one point per voxel (long runs) ...
+MAP_VOXEL_M = 0.05  # ... of this size, so its memory follows the space explored, not the time
 
 
 @dataclass
@@ -134,12 +136,29 @@ class DopeSlam:
         self._observations: list[Observation] = []
         self._map_points: list[np.ndarray] = []
         self.registered = 0  # sweeps the odometry registered
+        self.map_compactions = 0  # times the LiDAR map was thinned (``map_points`` then starts anew)
+        self._map_count = 0
+        self._map_limit = MAP_POINT_LIMIT
         self._finished = False
 
     @property
     def map_points(self) -> list[np.ndarray]:
-        """The LiDAR map so far (odometry poses), in ``map``: one (N, 3) array per kept sweep."""
+        """The LiDAR map so far (odometry poses), in ``map``: one (N, 3) array per kept sweep; once it
+        holds more than :data:`MAP_POINT_LIMIT` points, the first array is the map before that, thinned
+        to one point per :data:`MAP_VOXEL_M` voxel (``map_compactions`` counts the times)."""
         return self._map_points
+
+    def _add_map_points(self, points_map: np.ndarray) -> None:
+        self._map_points.append(points_map)
+        self._map_count += len(points_map)
+        if self._map_count <= self._map_limit:
+            return
+        pts = np.concatenate(self._map_points)
+        _, first = np.unique(np.floor(pts / MAP_VOXEL_M).astype(np.int64), axis=0, return_index=True)
+        self._map_points = [pts[np.sort(first)]]
+        self._map_count = len(first)
+        self._map_limit = max(MAP_POINT_LIMIT, 2 * self._map_count)  # a large place: thin less often
+        self.map_compactions += 1
 
     # ------------------------------------------------------------------ messages
 
@@ -154,7 +173,7 @@ class DopeSlam:
             self.registered += 1
             points = getattr(self.odometry, "last_points_base", None)
             if self.registered % MAP_EVERY == 1 and points is not None:
-                self._map_points.append(transform_points(pose, points[::MAP_POINT_STRIDE]))
+                self._add_map_points(transform_points(pose, points[::MAP_POINT_STRIDE]))
         if self.loop_closer is not None:
             self.loop_closer.on_scan(self.odometry, pose)
         if self._pending:

@@ -7,7 +7,7 @@ visual word with an inverted file (the key frames it occurs in); a query is scor
 database with the TF-IDF model (Sivic & Zisserman) and the best-scoring earlier key frames are the
 places it may be.
 
-TF-IDF as computed here (``tests/test_place_recognition.py`` checks a hand-computed case):
+TF-IDF as computed here (``tests/unit/test_place_recognition.py`` checks a hand-computed case):
 
 * ``tf(w, d) = n(w, d) / n(d)``: how often word w occurs in image d over the number of words in d;
 * ``idf(w) = ln(N / N_w)``: N training images, N_w of them containing w. The weights come from the

@@ -202,6 +202,7 @@ class LivePerception:
         self._waiting: dict[int, dict] = {}  # frame index -> what the FusedFrame needs besides the fusion
         self._ready: deque = deque()  # fused frames not yet yielded
         self._map_xy: list[np.ndarray] = []
+        self._compactions = 0
 
     @property
     def dropped_no_pose(self) -> int:
@@ -210,6 +211,8 @@ class LivePerception:
     @property
     def map_points(self) -> list[np.ndarray]:
         """The LiDAR map so far, (x, y) in ``map`` of the points 0.05-2 m above ``base_link``, float32."""
+        if self.pipeline.map_compactions != self._compactions:  # the pipeline thinned its map: start anew
+            self._compactions, self._map_xy = self.pipeline.map_compactions, []
         for pts in self.pipeline.map_points[len(self._map_xy):]:
             self._map_xy.append(pts[(pts[:, 2] > 0.05) & (pts[:, 2] < 2.0), :2].astype(np.float32))
         return self._map_xy

@@ -12,7 +12,7 @@ import pytest
 
 from stack.messages import CameraFrame, CameraInfo, Detection, LidarScan, WheelOdometry
 from stack.object_store import ObjectStore
-from stack.pipeline import MAP_EVERY, DopeSlam
+from stack.pipeline import MAP_EVERY, MAP_POINT_STRIDE, DopeSlam
 from stack.transforms import inv
 
 DIMS = {"Yogurt": (0.054, 0.068, 0.068), "Mustard": (0.16, 0.049, 0.065)}
@@ -204,6 +204,31 @@ def test_the_lidar_map_keeps_every_fifth_registered_sweep():
     pts = pipe.finish().map_points
     assert len(pts) == 3  # registered sweeps 1, 6, 11
     np.testing.assert_allclose(pts[1][0], [1.0 + 0.55, 0.0, 0.0])  # sweep 6's pose at t = 0.55
+
+
+def test_a_long_run_thins_its_lidar_map_to_one_point_per_voxel(monkeypatch):
+    """Past MAP_POINT_LIMIT points the map is one point per voxel: its memory follows the place, not
+    the time (a robot going back and forth adds nothing); the points kept are points of the map."""
+    import stack.pipeline as sp
+
+    class Standing(LineOdometry):  # the robot stands still: every sweep sees the same place
+        def process(self, scan):
+            self.stamps.append(scan.stamp)
+            return np.eye(4)
+
+    monkeypatch.setattr(sp, "MAP_POINT_LIMIT", 4000)
+    odo = Standing()
+    centres = (np.arange(40) + 0.5) * sp.MAP_VOXEL_M
+    grid = np.stack(np.meshgrid(centres, centres, [0.5 + 0.5 * sp.MAP_VOXEL_M]), -1).reshape(-1, 3)
+    odo.last_points_base = np.repeat(grid, MAP_POINT_STRIDE, axis=0)  # 1600 points kept per sweep
+    pipe = DopeSlam(odo, None, T_BASE_CAM, DIMS)
+    for k in range(MAP_EVERY * 40):
+        pipe.on_scan(scan(0.1 * k))
+    assert pipe.map_compactions >= 1
+    pts = np.concatenate(pipe.map_points)
+    assert len(pts) <= 4000 and len(pts) >= 1600
+    keys = {tuple(v) for v in np.floor(pts / sp.MAP_VOXEL_M).astype(int)}
+    assert len(keys) == 1600  # the place is still all there
 
 
 def test_messages_dispatch_by_type():
