@@ -33,7 +33,7 @@ from stack.interfaces import Detector, LoopCloser, Odometry
 from stack.lidar_slam import WheelOdometryTrack
 from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
 from stack.object_store import ObjectStore, Observation
-from stack.retire import RetireConfig, Retirement
+from stack.retire import RetireConfig, Retirement, carry_over
 from stack.transforms import transform_points
 
 MAP_EVERY = 5  # every 5th registered sweep goes into the LiDAR map (a picture, not used for labels) ...
@@ -239,6 +239,8 @@ class DopeSlam:
             if self.map_objects:
                 store = self.loop_closer.refuse(ObjectStore(dims=self.dims, policy=self.policy),
                                                 self.odometry.pose_at, self.T_base_cam)
+                if self.retirement is not None:  # what was seen empty stays retired on the new trajectory
+                    carry_over(self.store, store, self.retirement.config.revive_sightings)
             map_points = self.loop_closer.map_points()
         floor = getattr(self.odometry, "floor_plane_map", None)
         store.floor = floor() if callable(floor) else None

@@ -151,6 +151,29 @@ def retire(obj, reason: str, revive_after: int = 3) -> None:
     obj.status, obj.reason, obj.revive_after, obj.sightings = RETIRED, reason, int(revive_after), []
 
 
+def carry_over(old_store, new_store, revive_after: int = 3) -> int:
+    """After every observation was fused again into ``new_store`` (a loop closure placed the map
+    anew), retire each new object whose observations are mostly those of an object retired in
+    ``old_store``: what the depth images showed empty stays retired. Returns how many were."""
+    def key(h) -> tuple[float, str]:
+        return (float(h.stamp), str(h.cls))
+
+    gone: dict[tuple[float, str], object] = {}
+    for obj in old_store:
+        if obj.status == RETIRED:
+            for h in list(obj.history) + list(getattr(obj, "sightings", [])):
+                gone[key(h)] = obj
+    count = 0
+    for obj in new_store:
+        if obj.edited or not obj.history:
+            continue
+        hits = [gone[key(h)] for h in obj.history if key(h) in gone]
+        if 2 * len(hits) > len(obj.history):
+            retire(obj, hits[0].reason, revive_after)
+            count += 1
+    return count
+
+
 def revive(obj) -> None:
     """A retired object seen again: it comes back, its label from what is seen from now on."""
     obj.past = list(getattr(obj, "past", [])) + list(obj.history)

@@ -197,3 +197,59 @@ def test_pipeline_object_back_after_retirement():
     pipe = _run(lambda t: t < 1.2 or t > 3.0, "empty", seconds=5.0)
     (obj,) = list(pipe.store)
     assert obj.is_label and obj.past and np.allclose(obj.xyz, OBJ, atol=1e-6)
+
+
+class RefusingLoopCloser:
+    """A loop closer whose correction is a 5 cm shift: at the end every detection is fused again."""
+
+    SHIFT = np.array([[1.0, 0, 0, 0.05], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+
+    def __init__(self):
+        self.fused = []
+
+    def on_scan(self, odometry, T_map_base):
+        pass
+
+    def on_image(self, frame):
+        pass
+
+    def on_fused(self, detection):
+        self.fused.append(detection)
+
+    def finish(self, stamps, T_map_base):
+        return self.SHIFT @ T_map_base
+
+    def refuse(self, store, pose_at, T_base_cam):
+        from stack.fusion import fuse
+
+        for det in self.fused:
+            store.add(fuse(det, lambda t: self.SHIFT @ pose_at(t), T_base_cam))
+        return store
+
+    def map_points(self):
+        return []
+
+
+def _run_closing(visible, seconds):
+    pipe = DopeSlam(SlideOdometry(), Scripted(visible), T_BASE_CAM, DIMS, retire=RetireConfig(),
+                    loop_closer=RefusingLoopCloser())
+    for k in range(int(seconds * 10) + 1):
+        t = 0.1 * k
+        T_map_cam = SlideOdometry.pose(t) @ T_BASE_CAM
+        pipe.on_image(CameraFrame(t, INFO, None, depth_image("present" if visible(t) else "empty", T_map_cam, OBJ)))
+        pipe.on_scan(LidarScan(t + 0.05, np.zeros((0, 3)), np.zeros(0)))
+    pipe.finish()
+    return pipe
+
+
+def test_a_retired_label_stays_retired_when_loop_closure_fuses_the_map_again():
+    pipe = _run_closing(lambda t: t < 1.5, 3.0)
+    (obj,) = list(pipe.store)  # the store fused anew on the corrected trajectory
+    assert obj.status == RETIRED and pipe.store.labels() == [] and "empty" in obj.reason
+    assert np.allclose(obj.xyz, OBJ + [0.05, 0, 0], atol=1e-6)  # placed with the correction
+
+
+def test_an_object_back_after_retirement_is_a_label_after_loop_closure_too():
+    pipe = _run_closing(lambda t: t < 1.2 or t > 3.0, 5.0)
+    (obj,) = list(pipe.store)
+    assert obj.is_label
