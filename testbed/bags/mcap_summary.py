@@ -46,17 +46,27 @@ def _summary_crc(f, footer_at: int, summary_start: int) -> int:
     return crc
 
 
+def _checkable(f, path: Path) -> tuple[int, int, int] | None:
+    """(footer offset, summary_start, summary_crc) of a file with a footer and a summary section
+    inside it, else None."""
+    found = _footer(f, path.stat().st_size)
+    if found is None:
+        return None
+    footer_at, start, _offsets, crc = found
+    if start == 0 or not len(MAGIC) <= start <= footer_at:
+        return None
+    return footer_at, start, crc
+
+
 def write_summary_crc(path: str | Path) -> bool:
     """Fill in the footer's ``summary_crc`` of a complete MCAP file whose field is still 0; returns
     whether it wrote one (False: no summary section, a CRC already there, or no footer)."""
     path = Path(path)
     with open(path, "r+b") as f:
-        found = _footer(f, path.stat().st_size)
-        if found is None:
+        found = _checkable(f, path)
+        if found is None or found[2] != 0:
             return False
-        footer_at, start, _offsets, crc = found
-        if start == 0 or crc != 0 or not len(MAGIC) <= start <= footer_at:
-            return False
+        footer_at, start, _ = found
         value = _summary_crc(f, footer_at, start)
         f.seek(footer_at + CRC_SPAN_END)
         f.write(struct.pack("<I", value))
@@ -64,19 +74,15 @@ def write_summary_crc(path: str | Path) -> bool:
 
 
 def summary_crc_problem(path: str | Path) -> str | None:
-    """Why the MCAP file's summary cannot be trusted (a CRC mismatch, a summary start outside the
-    file), or None: it matches, or the writer did not compute one, or there is no footer to check
-    (a truncated file: the reader's own error says so)."""
+    """Why the MCAP file's summary cannot be trusted (a CRC mismatch), or None: it matches, or the
+    writer did not compute one, or there is no footer or summary to check (a truncated file: the
+    reader's own error says so)."""
     path = Path(path)
     with open(path, "rb") as f:
-        found = _footer(f, path.stat().st_size)
-        if found is None:
+        found = _checkable(f, path)
+        if found is None or found[2] == 0:
             return None
-        footer_at, start, _offsets, crc = found
-        if start == 0 or crc == 0:
-            return None
-        if not len(MAGIC) <= start <= footer_at:
-            return f"the footer's summary start {start:,} lies outside the file"
+        footer_at, start, crc = found
         got = _summary_crc(f, footer_at, start)
     if got != crc:
         return f"summary CRC mismatch: the summary section is damaged (CRC32 {got:08x}, recorded {crc:08x})"

@@ -215,3 +215,30 @@ def test_a_damaged_first_chunk_loses_its_messages_only(tmp_path):
     sensors = sum(not isinstance(m, CameraFrame) for m in msgs)
     lost = sum(n for topic, n in chunk["messages"].items() if topic in (T.LIDAR, T.WHEEL_ODOM))
     assert sum(not isinstance(m, CameraFrame) for m in got) == sensors - lost > 0
+
+
+def test_the_mcap_summary_carries_its_crc_and_damage_there_sends_the_reader_to_the_chunks(tmp_path, caplog):
+    from testbed.bags.errors import CorruptBagError
+    from testbed.bags.mcap_summary import _footer, summary_crc_problem
+
+    path = tmp_path / "run"
+    with BagWriter(path) as bag:
+        rng = np.random.default_rng(0)
+        bag.write_extrinsics(T_BASE_VELODYNE, T_BASE_CAMERA, stamp=T0)
+        for i in range(8):
+            bag.write(make_scan(rng, T0 + 0.1 * i, 20000))
+    target = next(path.glob("*.mcap"))
+    with target.open("rb") as f:
+        footer_at, start, _offsets, crc = _footer(f, target.stat().st_size)
+    data = bytearray(target.read_bytes())
+    assert crc != 0 and crc == zlib.crc32(bytes(data[start:footer_at + 1 + 8 + 16]))
+    assert summary_crc_problem(target) is None
+    data[start + 20] ^= 0xFF  # one byte inside the summary section (a schema definition)
+    target.write_bytes(bytes(data))
+    assert "summary CRC mismatch" in summary_crc_problem(target)
+    with caplog.at_level("WARNING"), BagReader(path, require_camera=False) as bag:
+        assert len(list(bag.scans())) == 8  # every scan, from the intact chunks
+        assert bag.salvaged
+    assert "summary CRC mismatch" in caplog.text
+    with pytest.raises(CorruptBagError, match="summary CRC mismatch"):
+        BagReader(path, require_camera=False, salvage="never").open()

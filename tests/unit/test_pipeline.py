@@ -12,6 +12,7 @@ import pytest
 
 from stack.messages import CameraFrame, CameraInfo, Detection, LidarScan, WheelOdometry
 from stack.object_store import ObjectStore
+from helpers.loop_closer import RecordingLoopCloser
 from stack.pipeline import MAP_EVERY, MAP_POINT_STRIDE, DopeSlam
 from stack.transforms import inv
 
@@ -243,37 +244,6 @@ def test_messages_dispatch_by_type():
 def test_a_detector_without_detect_is_refused():
     with pytest.raises(TypeError, match="detect"):
         DopeSlam(LineOdometry(), object(), T_BASE_CAM, DIMS)
-
-
-class RecordingLoopCloser:
-    """Sees what the pipeline hands a loop closer; 'corrects' the trajectory by 1 m along y."""
-
-    SHIFT = np.array([[1.0, 0, 0, 0], [0, 1, 0, 1.0], [0, 0, 1, 0], [0, 0, 0, 1]])
-
-    def __init__(self):
-        self.scans, self.images, self.fused = [], [], []
-
-    def on_scan(self, odometry, T_map_base):
-        self.scans.append(None if T_map_base is None else float(T_map_base[0, 3]))
-
-    def on_image(self, frame):
-        self.images.append(frame.stamp)
-
-    def on_fused(self, detection):
-        self.fused.append(detection)
-
-    def finish(self, stamps, T_map_base):
-        return self.SHIFT @ T_map_base
-
-    def refuse(self, store, pose_at, T_base_cam):
-        from stack.fusion import fuse
-
-        for det in self.fused:
-            store.add(fuse(det, lambda t: self.SHIFT @ pose_at(t), T_base_cam))
-        return store
-
-    def map_points(self):
-        return [np.zeros((1, 3))]
 
 
 def test_a_loop_closer_rides_along_and_its_corrected_trajectory_places_the_map_again():

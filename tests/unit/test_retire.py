@@ -8,6 +8,7 @@ import pytest
 
 from stack.messages import CameraFrame, CameraInfo, Detection, LidarScan
 from stack.object_store import ObjectStore, Observation
+from helpers.loop_closer import RecordingLoopCloser
 from stack.pipeline import DopeSlam
 from stack.retire import EMPTY, OCCLUDED, OUT_OF_VIEW, PRESENT, RETIRED, RetireConfig, Retirement, classify, retire
 from stack.transforms import inv
@@ -199,40 +200,12 @@ def test_pipeline_object_back_after_retirement():
     assert obj.is_label and obj.past and np.allclose(obj.xyz, OBJ, atol=1e-6)
 
 
-class RefusingLoopCloser:
-    """A loop closer whose correction is a 5 cm shift: at the end every detection is fused again."""
-
-    SHIFT = np.array([[1.0, 0, 0, 0.05], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
-
-    def __init__(self):
-        self.fused = []
-
-    def on_scan(self, odometry, T_map_base):
-        pass
-
-    def on_image(self, frame):
-        pass
-
-    def on_fused(self, detection):
-        self.fused.append(detection)
-
-    def finish(self, stamps, T_map_base):
-        return self.SHIFT @ T_map_base
-
-    def refuse(self, store, pose_at, T_base_cam):
-        from stack.fusion import fuse
-
-        for det in self.fused:
-            store.add(fuse(det, lambda t: self.SHIFT @ pose_at(t), T_base_cam))
-        return store
-
-    def map_points(self):
-        return []
+SHIFT_X = np.array([[1.0, 0, 0, 0.05], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])  # the 'loop closure'
 
 
 def _run_closing(visible, seconds):
     pipe = DopeSlam(SlideOdometry(), Scripted(visible), T_BASE_CAM, DIMS, retire=RetireConfig(),
-                    loop_closer=RefusingLoopCloser())
+                    loop_closer=RecordingLoopCloser(SHIFT_X))
     for k in range(int(seconds * 10) + 1):
         t = 0.1 * k
         T_map_cam = SlideOdometry.pose(t) @ T_BASE_CAM
