@@ -9,7 +9,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-from dataclasses import dataclass, field
 from typing import Iterator
 
 import cv2
@@ -86,18 +85,34 @@ def _interpolate_poses(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> 
     return out
 
 
-@dataclass
 class GroundTruth:
-    base_stamps: list = field(default_factory=list)
-    base_poses: list = field(default_factory=list)
+    """``base_link`` in ``world`` at every physics step so far, kept in two arrays that grow by doubling
+    (a pose costs its 136 bytes, not a Python object per step: a long episode's record stays compact,
+    and reading it is a view, not a copy)."""
+
+    def __init__(self, capacity: int = 4096):
+        self._stamps = np.empty(capacity)
+        self._poses = np.empty((capacity, 4, 4))
+        self._n = 0
+
+    def add(self, stamp: float, T_world_base: np.ndarray) -> None:
+        if self._n == len(self._stamps):
+            self._stamps = np.concatenate([self._stamps, np.empty(len(self._stamps))])
+            self._poses = np.concatenate([self._poses, np.empty_like(self._poses)])
+        self._stamps[self._n] = stamp
+        self._poses[self._n] = T_world_base
+        self._n += 1
 
     @property
-    def T_world_base(self) -> np.ndarray:
-        return np.asarray(self.base_poses)
+    def base_stamps(self) -> np.ndarray:
+        return self._stamps[:self._n]
 
     @property
-    def stamps(self) -> np.ndarray:
-        return np.asarray(self.base_stamps)
+    def base_poses(self) -> np.ndarray:
+        return self._poses[:self._n]
+
+    T_world_base = base_poses
+    stamps = base_stamps
 
 
 class Episode:
@@ -232,8 +247,7 @@ class Episode:
             T_world_base = self.robot.T_world_base()
             if self.events is not None and self.events.step(t, T_world_base[:2, 3]):
                 self._boxes_changed = True
-            self.groundtruth.base_stamps.append(t)
-            self.groundtruth.base_poses.append(T_world_base)
+            self.groundtruth.add(t, T_world_base)
             if k > 0:
                 self.robot.update_odometry(self.dt)
             out = []
