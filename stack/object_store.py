@@ -307,6 +307,8 @@ class ObjectStore:
                             np.array(obs.quat_xyzw, dtype=float), self.dims[obs.cls].copy(), obs.stamp, obs.stamp)
             self.objects[obj.id] = obj
         if obj.status == RETIRED and not obj.edited:
+            if not obs.fpr_pass:  # a detection FPR rejected is no sighting: the object stays retired
+                return obj
             obj.sightings.append(obs)  # one stray detection near an emptied place does not bring it back
             if len(obj.sightings) < obj.revive_after:
                 return obj

@@ -274,7 +274,7 @@ class DopeSlam:
             fused.append(obs)
             if self.map_objects:
                 obj = self.store.add(obs)
-                if obj is not None:
+                if obj is not None and obs.fpr_pass:  # a detection FPR rejected is no sighting (retirement)
                     seen.add(obj.id)
             if self.loop_closer is not None:
                 self.loop_closer.on_fused(det)

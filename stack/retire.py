@@ -11,7 +11,8 @@ aligned depth image show there?
 - further than the object's back by more than the tolerance: the camera sees through the place
   where the object was: the place is **empty**, one miss.
 
-A detection in the image associated with the object is a sighting and clears its misses. After
+A detection in the image associated with the object that passed FPR is a sighting and clears its
+misses (one FPR rejected is no evidence either way). After
 ``misses`` empty views (and at least ``min_span_s`` between the first and the last) the object is
 retired: its row stays in the store with status ``retired`` and it is no label. An object seen
 again after that (``revive_sightings`` detections associated with it) comes back: its observations start afresh (the earlier ones are kept in

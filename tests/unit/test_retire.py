@@ -122,6 +122,16 @@ def test_stray_sightings_of_a_retired_object_are_cleared_by_its_empty_place():
     assert obj.status == RETIRED
 
 
+def test_detections_fpr_rejected_do_not_bring_a_retired_object_back():
+    store = _store_with_object()
+    obj = store.objects[1]
+    retire(obj, "test", revive_after=3)
+    rejected = Observation(5.0, "Yogurt", obj.xyz.copy(), np.array([0, 0, 0, 1.0]), fpr_pass=False)
+    for _ in range(5):
+        assert store.add(rejected) is obj
+    assert obj.status == RETIRED and obj.sightings == []
+
+
 # --- through the pipeline -----------------------------------------------------------------------
 
 class SlideOdometry:
@@ -226,3 +236,24 @@ def test_an_object_back_after_retirement_is_a_label_after_loop_closure_too():
     pipe = _run_closing(lambda t: t < 1.2 or t > 3.0, 5.0)
     (obj,) = list(pipe.store)
     assert obj.is_label
+
+
+def test_detections_fpr_rejected_at_an_emptied_place_do_not_keep_its_label():
+    """Only FPR-passing detections are sightings: rejected ones near the place (here every image once it
+    is empty) do not clear its misses, so the label whose object is gone is still retired."""
+    class RejectedLater(Scripted):
+        def detect(self, frame):
+            dets = super().detect(frame) if frame.stamp < 1.5 else Scripted(lambda t: True).detect(frame)
+            for d in dets:
+                d.fpr_pass = frame.stamp < 1.5
+            return dets
+
+    pipe = DopeSlam(SlideOdometry(), RejectedLater(lambda t: True), T_BASE_CAM, DIMS, retire=RetireConfig())
+    for k in range(31):
+        t = 0.1 * k
+        T_map_cam = SlideOdometry.pose(t) @ T_BASE_CAM
+        pipe.on_image(CameraFrame(t, INFO, None, depth_image("present" if t < 1.5 else "empty", T_map_cam, OBJ)))
+        pipe.on_scan(LidarScan(t + 0.05, np.zeros((0, 3)), np.zeros(0)))
+    pipe.finish()
+    (obj,) = list(pipe.store)
+    assert obj.status == RETIRED
