@@ -7,7 +7,7 @@ any other setting changed from its default is refused before anything runs.
 from __future__ import annotations
 
 # what every episode experiment honours of the config ([run] and the policy come from its own options)
-EPISODE_APPLIES = {"detector", "odometry", "evidence", "store.gate_m", "store.evidence_gate", "components"}
+EPISODE_APPLIES = {"detector", "odometry", "evidence", "store.gate_m", "store.evidence_gate", "retire", "components"}
 
 
 def episode_config(config, input_mode: str, stages: int, weights, policy: str | None = None):
