@@ -96,9 +96,10 @@ class GroundTruth:
         self._n = 0
 
     def add(self, stamp: float, T_world_base: np.ndarray) -> None:
-        if self._n == len(self._stamps):
-            self._stamps = np.concatenate([self._stamps, np.empty(len(self._stamps))])
-            self._poses = np.concatenate([self._poses, np.empty_like(self._poses)])
+        if self._n == len(self._stamps):  # twice the room; the new half's pages stay untouched until used
+            stamps, poses = np.empty(2 * self._n), np.empty((2 * self._n, 4, 4))
+            stamps[:self._n], poses[:self._n] = self._stamps, self._poses
+            self._stamps, self._poses = stamps, poses
         self._stamps[self._n] = stamp
         self._poses[self._n] = T_world_base
         self._n += 1

@@ -121,3 +121,14 @@ def test_simulate_is_deterministic_per_seed(tmp_path):
     depth = [n for n in images if n.startswith("depth_")][0]
     assert (a / rgb).read_bytes() != (c / rgb).read_bytes()
     assert (a / depth).read_bytes() != (c / depth).read_bytes()
+
+
+def test_the_ground_truth_record_keeps_every_pose_as_it_grows():
+    from sim.episode import GroundTruth
+
+    gt = GroundTruth(capacity=2)
+    poses = [np.diag([1.0, 1.0, 1.0, 1.0]) * (k + 1) for k in range(9)]
+    for k, T in enumerate(poses):
+        gt.add(0.1 * k, T)
+    assert len(gt.stamps) == 9 and gt.stamps.tolist() == [0.1 * k for k in range(9)]
+    assert np.array_equal(gt.T_world_base, np.array(poses))
