@@ -34,7 +34,7 @@ from stack.lidar_slam import WheelOdometryTrack
 from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
 from stack.object_store import ObjectStore, Observation
 from stack.retire import RetireConfig, Retirement, carry_over
-from stack.transforms import transform_points
+from stack.transforms import transform_points, voxel_thin
 
 MAP_EVERY = 5  # every 5th registered sweep goes into the LiDAR map (a picture, not used for labels) ...
 MAP_POINT_STRIDE = 4  # ... with every 4th of its points
@@ -153,10 +153,9 @@ class DopeSlam:
         self._map_count += len(points_map)
         if self._map_count <= self._map_limit:
             return
-        pts = np.concatenate(self._map_points)
-        _, first = np.unique(np.floor(pts / MAP_VOXEL_M).astype(np.int64), axis=0, return_index=True)
-        self._map_points = [pts[np.sort(first)]]
-        self._map_count = len(first)
+        thinned = voxel_thin(np.concatenate(self._map_points), MAP_VOXEL_M)
+        self._map_points = [thinned]
+        self._map_count = len(thinned)
         self._map_limit = max(MAP_POINT_LIMIT, 2 * self._map_count)  # a large place: thin less often
         self.map_compactions += 1
 

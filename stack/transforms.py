@@ -54,6 +54,16 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
+def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """The first point in each voxel of size ``voxel_m`` (order kept)."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(points) == 0:
+        return points
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
 def interpolate(T0: np.ndarray, T1: np.ndarray, alpha: float) -> np.ndarray:
     """SE(3) interpolation: linear in translation, slerp in rotation (alpha may extrapolate a little)."""
     R0, R1 = Rotation.from_matrix(T0[:3, :3]), Rotation.from_matrix(T1[:3, :3])

@@ -28,7 +28,7 @@ from sim.episode import Episode
 from stack import metrics
 from stack.lidar_slam import LidarOdometryConfig
 from stack.messages import CameraFrame, LidarScan, WheelOdometry
-from stack.transforms import transform_points
+from stack.transforms import transform_points, voxel_thin
 from testbed.io import write_json
 from testbed.plots import save
 
@@ -73,10 +73,8 @@ class _MapAccumulator:
     def _compact(self) -> None:
         if not self.chunks:
             return
-        pts = np.concatenate(self.chunks)
-        _, first = np.unique(np.floor(pts / self.voxel).astype(np.int64), axis=0, return_index=True)
-        self.chunks = [pts[first]]
-        self.count = len(first)
+        self.chunks = [voxel_thin(np.concatenate(self.chunks), self.voxel)]
+        self.count = len(self.chunks[0])
 
     def points(self) -> np.ndarray:
         self._compact()
@@ -162,8 +160,9 @@ def run_odometry(scenario=None, seed: int | None = None, out_dir: str | os.PathL
                 last_report = time.perf_counter()
                 log.info("odometry: sim t = %.1f / %.1f s, %d scans, %d registered", msg.stamp, ep.duration,
                          scans, pipe.registered)
-        if len(odo.trajectory()[0]) < 2:
-            raise RuntimeError(f"{ep.sc.name}: only {len(odo.trajectory()[0])} scans registered; nothing to score")
+        registered = len(odo.trajectory()[0])
+        if registered < 2:
+            raise RuntimeError(f"{ep.sc.name}: only {registered} scans registered; nothing to score")
         result = pipe.finish()
         stamps, T_odom, T_map_base = result.stamps, result.T_map_base_odometry, result.T_map_base
         gt = ep.T_world_base_at(stamps)

@@ -30,6 +30,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from stack.messages import CameraFrame, LidarScan, WheelOdometry
+from stack.transforms import voxel_thin
 from testbed.bags import BagWriter, Cuboid, bag_size
 from testbed.bags import topics as T
 
@@ -250,16 +251,6 @@ def record_episode(scenario=None, bag: Path | str = "out/episode", format: str |
 
 # --- the stack's results -------------------------------------------------------------------------
 
-def voxel_thin(points: np.ndarray, voxel_m: float = MAP_VOXEL_M) -> np.ndarray:
-    """The first point in each voxel of size ``voxel_m`` (order kept)."""
-    points = np.asarray(points, dtype=float).reshape(-1, 3)
-    if len(points) == 0:
-        return points
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return points[np.sort(first)]
-
-
 def store_cuboids(store) -> list[Cuboid]:
     """The object store's published labels as cuboids in ``map`` (name ``<class>_<id>``); candidates
     are not labels and are left out."""
@@ -291,7 +282,7 @@ def write_results_bag(path: Path | str, store, map_points: Iterable[np.ndarray] 
         if T_world_map is not None:
             w.write_tf_static(end, [(T.WORLD, T.MAP_FRAME, np.asarray(T_world_map, dtype=float))])
         w.write_labels(end, store_cuboids(store))
-        w.write_map(end, voxel_thin(pts))
+        w.write_map(end, voxel_thin(pts, MAP_VOXEL_M))
         d = w.dialect
         poses = [d.make("geometry_msgs/msg/PoseStamped", header=d.header(int(round(t * 1e9)), T.MAP_FRAME),
                         pose=d.pose(P)) for t, P in zip(stamps, np.asarray(T_map_base).reshape(-1, 4, 4))]

@@ -65,33 +65,34 @@ DOPE_FLAGS = {"input_mode": "detector.input", "stages": "detector.stages", "weig
 
 
 def experiment_config(args, module):
-    """The settings of ``--config``, ``DOPESLAM_SECTION__KEY`` and ``--set`` (None when they change
-    nothing); a setting the experiment does not apply (``module.APPLIES``) raises ``ConfigError``."""
+    """(the settings of ``--config``, ``DOPESLAM_SECTION__KEY`` and ``--set``, or None when they change
+    nothing; ``{key: value}`` of those changed); a setting the experiment does not apply
+    (``module.APPLIES``) raises ``ConfigError``."""
     from stack.config import changed_keys, resolve_config
     from testbed.commands.options import refuse_unapplied
     from testbed.settings import RunConfig
 
     config = resolve_config(args.config, list(args.config_sets), model=RunConfig)
     refuse_unapplied(config, module.APPLIES, f"experiment {args.name}")
-    return config if changed_keys(config) else None
+    changed = changed_keys(config)
+    return (config if changed else None), changed
 
 
 def run(args) -> int:
     import inspect
 
-    from stack.config import ConfigError, changed_keys
+    from stack.config import ConfigError
 
     module = importlib.import_module(EXPERIMENTS[args.name])
     out = args.out or f"out/{args.name}"
     try:
-        config = experiment_config(args, module)
+        config, changed = experiment_config(args, module)
     except ConfigError as e:
         return config_error(f"experiment {args.name}", e)
     opts = {"scenario": args.scenario, "seed": args.seed, "duration": args.duration, "runs": args.runs,
             "seconds": args.seconds, "frames": args.frames, "stages": args.stages, "input_mode": args.input_mode,
             "weights": args.weights, "levels": args.levels, "faults": args.faults, "jobs": args.jobs,
             "config": config}
-    changed = changed_keys(config) if config is not None else {}
     for dest, key in DOPE_FLAGS.items():
         if opts[dest] is None and key in changed:
             opts[dest] = changed[key]
