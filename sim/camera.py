@@ -161,9 +161,10 @@ def apply_color_noise(rgb: np.ndarray, light: float, read_noise: float, rng: np.
 
 def render_rgbd(client: int, T_world_cam: np.ndarray, info: CameraInfo, light: float = 1.0,
                 rng: np.random.Generator | None = None, noise: bool = True, renderer: int = p.ER_TINY_RENDERER,
-                light_direction=(0.3, 0.4, 1.0)):
-    """(rgb, depth_m, segmentation) as the D435i would give them (noise when ``noise`` and an rng)."""
-    rgb, depth, seg = render_raw(client, T_world_cam, info, renderer, light_direction)
+                light_direction=(0.3, 0.4, 1.0), segmentation: bool = True):
+    """(rgb, depth_m, segmentation) as the D435i would give them (noise when ``noise`` and an rng);
+    segmentation None when ``segmentation=False`` (colour and depth the same either way)."""
+    rgb, depth, seg = render_raw(client, T_world_cam, info, renderer, light_direction, segmentation=segmentation)
     if noise and rng is not None:
         model = DepthNoise.from_hardware()
         depth = apply_depth_noise(depth, info, model, rng)

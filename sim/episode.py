@@ -21,7 +21,7 @@ from sim.events import WorldEvents
 from sim.lidar import BeamPattern, BoxRayCaster
 from sim.objects import cuboid_keypoints
 from sim.robot import Jackal
-from sim.scenario import Scenario, load_scenario, with_overrides
+from sim.scenario import Scenario, ScenarioError, load_scenario, with_overrides
 from sim.world import build_world
 from stack.messages import CameraFrame, LidarScan, WheelOdometry
 from stack.transforms import interpolate_trajectory, inv, transform_points, yaw_of
@@ -121,13 +121,20 @@ class Episode:
 
     def __init__(self, scenario: Scenario | str | None = None, seed: int | None = None,
                  duration: float | None = None, light: float | None = None, renderer: str = "auto",
-                 camera: bool | None = None, lidar: bool | None = None, render_worker: bool | None = None):
+                 camera: bool | None = None, lidar: bool | None = None, render_worker: bool | None = None,
+                 camera_rate: float | None = None, segmentation: bool = True):
         """``render_worker``: render the camera in a second process (``sim.camera.RenderWorker``) so the
         rendering overlaps the physics, the LiDAR and whatever consumes the frames; the frames and
         their order are the same either way. None: as the environment variable DOPESLAM_RENDER_WORKER
-        says (1 = on), else off."""
+        says (1 = on), else off. ``camera_rate``: the camera's rate in Hz in place of the scenario's
+        ``[sensors] camera_rate``. ``segmentation=False``: frames carry no segmentation image (cheaper
+        to render; ``image_truth`` then gives no visible fraction and ``occluder_fraction`` is 0)."""
         self.sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         with_overrides(self.sc, seed=seed, duration=duration, light=light)  # checked as the file is: ScenarioError
+        if camera_rate is not None and not 0.0 < float(camera_rate) <= 60.0:
+            raise ScenarioError(f"camera rate {camera_rate!r}: expected a rate in (0, 60] Hz")
+        self.camera_rate = float(self.sc.sensors.camera_rate if camera_rate is None else camera_rate)
+        self.segmentation = bool(segmentation)
         self.seed = self.sc.seed if seed is None else int(seed)
         self.duration = self.sc.duration if duration is None else float(duration)
         self.light = self.sc.light if light is None else float(light)
@@ -142,7 +149,7 @@ class Episode:
         if self.sc.events:  # the worker's world would not follow the events
             render_worker = False
         if self.use_camera and render_worker:  # started first: it builds its world while this one does
-            self._render_worker = RenderWorker(self.sc, self.camera_info, renderer)
+            self._render_worker = RenderWorker(self.sc, self.camera_info, renderer, segmentation=self.segmentation)
         ss = np.random.SeedSequence(self.seed)
         self.rng_lidar, self.rng_camera, self.rng_odom = (np.random.default_rng(c) for c in ss.spawn(3))
         self.client, self.renderer = new_client(renderer if self.use_camera else "tiny")  # no EGL without a camera
@@ -233,7 +240,7 @@ class Episode:
 
         s = self.sc.sensors
         steps = int(round(self.duration / self.dt))
-        cam_every = max(1, int(round(1.0 / (s.camera_rate * self.dt))))
+        cam_every = max(1, int(round(1.0 / (self.camera_rate * self.dt))))
         odo_every = max(1, int(round(1.0 / (s.wheel_odometry_rate * self.dt))))
         sweep_steps = max(1, int(round(self.beams.period / self.dt)))
         dirs = self.beams.directions()
@@ -318,7 +325,7 @@ class Episode:
         T_world_cam = T_world_base @ self._T_base_camera
         rng = np.random.default_rng(self._frame_seed())
         rgb, depth, seg = render_rgbd(self.client, T_world_cam, self.camera_info, self.light_at(t), rng,
-                                      self.sc.sensors.noise, self.renderer)
+                                      self.sc.sensors.noise, self.renderer, segmentation=self.segmentation)
         return CameraFrame(t, self.camera_info, rgb, depth, T_world_cam, {"segmentation": seg})
 
     def _frame_seed(self) -> int:
@@ -347,7 +354,7 @@ class Episode:
             kp = transform_points(T_cam_obj, cuboid_keypoints(obj.dims))
             in_front = bool(np.all(kp[:, 2] > 0.05))
             uv = np.full((9, 2), np.nan)
-            visible = 0.0
+            visible = 0.0 if seg is not None else None  # None: not rendered (Episode(segmentation=False))
             if in_front:
                 uv = np.column_stack([info.fx * kp[:, 0] / kp[:, 2] + info.cx, info.fy * kp[:, 1] / kp[:, 2] + info.cy])
                 hull = cv2.convexHull(uv[:8].astype(np.float32))

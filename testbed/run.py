@@ -42,13 +42,15 @@ class DetectionLog:
     correct: int = 0
     seconds: float = 0.0
     rows: list = field(default_factory=list)  # per detection: stamp, cls, fpr, belief_sum, error
+    instances_scored: bool = True  # False: images without segmentation, so no instances and no recall
 
     def summary(self) -> dict:
         tp = self.predictions
+        scored = self.instances_scored
         return {"frames": self.frames, "predictions": tp, "false_positives": self.false_positives,
-                "instances": self.instances, "correct": self.correct,
+                "instances": self.instances if scored else None, "correct": self.correct if scored else None,
                 "precision": (tp - self.false_positives) / tp if tp else None,
-                "recall": self.correct / self.instances if self.instances else None,
+                "recall": self.correct / self.instances if scored and self.instances else None,
                 "fps": self.frames / self.seconds if self.seconds > 0 else None,
                 "false_positive_threshold_m": FALSE_POSITIVE_M,
                 "instance_definition": f"object {INSTANCE_RANGE_M[0]}-{INSTANCE_RANGE_M[1]} m away, "
@@ -74,6 +76,9 @@ def score_detections(dlog: DetectionLog, detections: list[Detection], truths: li
                 seen_correct.add(det.cls)
         correct_flags.append(ok)
     for t in truths:
+        if t["visible_fraction"] is None:  # no segmentation rendered (the fast profile): recall not scored
+            dlog.instances_scored = False
+            continue
         if t["in_front"] and INSTANCE_RANGE_M[0] <= t["distance_m"] <= INSTANCE_RANGE_M[1] \
                 and t["visible_fraction"] >= INSTANCE_VISIBLE:
             dlog.instances += 1
@@ -140,7 +145,8 @@ def detector_name(detector) -> str:
 def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_mode="rgb", stages=6, fpr=True,
                 policy="robust-mean", duration=None, weights=None, detector=None, dope_every: int = 1,
                 write_outputs: bool = True, keep_detections: bool = False, bag_writer=None,
-                results_bag=None, loop_closure: bool = False, config=None, faults=(), store=None, retire=True, odometry=None) -> dict:
+                results_bag=None, loop_closure: bool = False, config=None, faults=(), store=None, retire=True, odometry=None,
+                profile: str | None = None) -> dict:
     """One simulated episode through the stack's pipeline (:class:`stack.pipeline.DopeSlam`), scored.
 
     ``odometry``: None (KISS-ICP), a name for :func:`stack.interfaces.load_odometry` (``wheel``,
@@ -161,7 +167,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     over the scenario's ``[faults]`` (``sim.faults``); ``store``: an object store file (.xlsx/.json)
     to start from and save the updated map to; ``retire``: retire labels whose place is seen empty
     (True: ``config``'s ``[retire]`` settings, or ``stack.retire.RetireConfig()`` without a config; a
-    ``RetireConfig``; or False); see ``testbed/dynamic.py``."""
+    ``RetireConfig``; or False); see ``testbed/dynamic.py``. ``profile``: ``full`` or ``fast``
+    (``testbed.settings.profile_sensors``; None: ``config``'s ``run.profile``, else ``full``)."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
@@ -176,8 +183,21 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         _check_config(config)
     detector = detector or make_detector(input_mode, stages, fpr, weights, None if config is None else config.detector)
     dims = {c: s.dims for c, s in load_catalog().items()}
+    if profile is None:
+        profile = getattr(getattr(config, "run", None), "profile", "full")
+    camera_rate, segmentation = None, True
+    if profile != "full":
+        from sim.scenario import Scenario, load_scenario
+        from testbed.settings import profile_sensors
+
+        sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+        needs = bag_writer is not None or callable(getattr(detector, "bind_episode", None)) \
+            or any(e.kind == "walk" for e in sc.events)
+        camera_rate, segmentation = profile_sensors(profile, sc.sensors.camera_rate, needs)
+        scenario = sc
     wall0 = time.perf_counter()
-    with Episode(scenario, seed=seed, duration=duration, light=light) as ep:
+    with Episode(scenario, seed=seed, duration=duration, light=light, camera_rate=camera_rate,
+                 segmentation=segmentation) as ep:
         recorder = None
         if bag_writer is not None:
             from testbed.record import EpisodeRecorder
@@ -256,7 +276,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         wheel_score = score_trajectory(result.wheel_stamps, result.T_odom_base, ep, T_world_odom0)
         labels, labels_summary = score_labels(store, ep.objects, T_world_map)
         report = {
-            "scenario": ep.sc.name, "seed": ep.seed, "light": ep.light, "input": input_mode, "stages": stages,
+            "scenario": ep.sc.name, "seed": ep.seed, "light": ep.light, "profile": profile,
+            "camera_rate_hz": ep.camera_rate, "input": input_mode, "stages": stages,
             "fpr": fpr, "policy": policy, "detector": detector_name(detector), "odometry_class": detector_name(odom),
             "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
             "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,

@@ -23,7 +23,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -41,19 +41,36 @@ class RunSection(BaseModel):
     seed: int | None = Field(None, ge=0, description="drives everything random (null: the scenario's seed)")
     light: float | None = Field(None, ge=0, le=1, description="light level 0-1 for the whole episode (null: the scenario's)")
     duration: float | None = Field(None, gt=0, description="seconds simulated (null: the scenario's)")
+    profile: Literal["full", "fast"] = Field(
+        "full", description="full: every sensor at the scenario's rates; fast (for large sweeps): the camera, and so "
+                            "DOPE, at half the scenario's camera_rate and no segmentation image rendered, so the "
+                            "per-image recall is not scored (what it costs: docs/speed.md)")
 
 
 class RunConfig(StackConfig):
     """The stack's config and the episode it runs in."""
 
     ALIASES: ClassVar[dict[str, str]] = {**StackConfig.ALIASES, "scenario": "run.scenario", "seed": "run.seed",
-                                         "light": "run.light", "duration": "run.duration"}
+                                         "light": "run.light", "duration": "run.duration",
+                                         "profile": "run.profile"}
 
     run: RunSection = Field(default_factory=RunSection)
 
     def stack(self) -> StackConfig:
         """The stack's part (every section but ``[run]``)."""
         return StackConfig(**{k: getattr(self, k) for k in StackConfig.model_fields})
+
+
+FAST_CAMERA_FACTOR = 0.5  # the fast profile's camera rate, as a fraction of the scenario's
+
+
+def profile_sensors(profile: str, camera_rate: float, needs_segmentation: bool) -> tuple[float, bool]:
+    """(camera rate in Hz, whether to render the segmentation image) of a run profile for a scenario
+    whose camera runs at ``camera_rate``; ``needs_segmentation``: something besides the per-image
+    recall reads it (people walking through, a recorder, a ground-truth detector)."""
+    if profile == "fast":
+        return camera_rate * FAST_CAMERA_FACTOR, needs_segmentation
+    return camera_rate, True
 
 
 def cache_dir(name: str, environ: Mapping[str, str] | None = None, create: bool = True) -> Path:

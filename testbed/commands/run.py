@@ -123,6 +123,9 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--light", type=float, default=None, help="override the scenario's light level (0-1)")
     p.add_argument("--duration", type=float, default=None)
+    p.add_argument("--profile", choices=["full", "fast"], default=None,
+                   help="fast: the camera (and DOPE) at half the scenario's rate, no segmentation image, no per-image "
+                        "recall; for large sweeps, what it costs in docs/speed.md (default: the config's run.profile, full)")
     p.add_argument("--policy", default=None,
                    help="labelling policy: last, last-fpr, best-score, robust-mean (default), ..., or MODULE:FUNCTION "
                         "(observations -> stack.object_store.Label or None)")

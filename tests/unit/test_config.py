@@ -119,7 +119,7 @@ def test_resolved_config_round_trips(tmp_path):
         assert not list(tmp_path.glob(".*.tmp"))  # the temporary file was renamed
     assert resolve_config(write_config(RunConfig(), tmp_path / "d.toml"), None, NO_ENV, RunConfig) == RunConfig()
     assert "# weights = null" in dump_toml(StackConfig())
-    assert read_file(tmp_path / "config.toml")["run"] == {"seed": 7, "light": 0.5}
+    assert read_file(tmp_path / "config.toml")["run"] == {"seed": 7, "light": 0.5, "profile": "full"}
 
 
 def test_grid_and_run_keys():
