@@ -180,7 +180,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                fpr: bool = True, weights=None, policy: str = "robust-mean", topics: BagTopics | None = None,
                dope_every: int = 1, parallel: bool = True, write_outputs: bool = True,
                results_bag=None, keep_detections: bool = False, loop_closure: bool = False,
-               vocabulary=None, odometry=None) -> dict:
+               vocabulary=None, odometry=None, odometry_only: bool = False) -> dict:
     """Run the stack's pipeline over a bag; returns the report (written to OUT/report.json).
 
     ``detector``: any :class:`stack.interfaces.Detector` (default: DOPE + FPR for ``input_mode``,
@@ -189,7 +189,9 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     runs on a second reader in a thread, ahead of the pipeline (else in the message loop).
     ``loop_closure``: the loop closer rides along (key frames from the colour images, scans); the
     corrected trajectory then places the labels, and replaces the odometry's in the outputs (the
-    odometry-only ATE is reported beside it when the bag has ground truth)."""
+    odometry-only ATE is reported beside it when the bag has ground truth). ``odometry_only``: the
+    LiDAR (and wheel odometry) only: no images are read and no detector runs; the trajectory, the
+    LiDAR map and an empty object store come out."""
     from sim.objects import load_catalog
     from stack.interfaces import load_odometry
     from testbed.run import detector_name, make_detector
@@ -202,12 +204,17 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         raise OutputError(f"--out {out}: is, or lies inside, the input bag {bag_path}; choose another folder")
     kept = edited_objects(out) if write_outputs else []  # checked before any work starts
     wall0 = time.perf_counter()
-    bag = open_bag(bag_path, topics, input_mode)
+    bag = open_bag(bag_path, topics, input_mode, need_camera=not odometry_only)
     ahead = None
+    if odometry_only:
+        parallel, loop_closure = False, False
     try:
         log.info("%s", bag.describe())
-        detector = detector or make_detector(input_mode, stages, fpr, weights)
-        if not isinstance(detector, Detector):  # checked here too: in parallel the pipeline does not see it
+        if odometry_only:
+            detector = None
+        else:
+            detector = detector or make_detector(input_mode, stages, fpr, weights)
+        if detector is not None and not isinstance(detector, Detector):  # in parallel the pipeline does not see it
             raise TypeError(f"detector {type(detector).__name__} has no detect(frame) method")
         dims = {c: s.dims for c, s in load_catalog().items()}
         truth = BagImageTruth(bag) if bag.topics.get(T.GT_IMAGE_OBJECTS) == "std_msgs/msg/String" else None
@@ -233,7 +240,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             ahead = DetectionAhead(lambda: open_bag(bag_path, topics, input_mode), detector, dope_every)
             stream = _merged(bag.frames(lidar=True, camera=False, odometry=True), ahead)
         else:
-            stream = ((m.stamp, 0, m, None) for m in bag.frames(lidar=True, camera=True, odometry=True))
+            stream = ((m.stamp, 0, m, None) for m in bag.frames(lidar=True, camera=not odometry_only, odometry=True))
         from testbed.progress import EpisodeWatch  # progress bar (scans) and live views (--view)
 
         watch = EpisodeWatch(bag.path.name, bag.message_counts.get(bag.lidar_topic, 0), truth=bag.groundtruth,
@@ -292,7 +299,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             "ground_truth": {"trajectory": gt is not None, "objects": bool(gt is not None and gt.objects),
                              "images": truth is not None},
             "bag_seconds": span, "wall_seconds": wall, "real_time_factor": span / wall if wall > 0 else None,
-            "parallel_passes": parallel, "detector": detector_name(detector), "odometry_class": detector_name(odom),
+            "parallel_passes": parallel, "detector": "none" if detector is None else detector_name(detector),
+            "odometry_class": detector_name(odom), "odometry_only": odometry_only,
             "time_split_s": {"odometry": pipe.timing["odometry"], "odometry_reading": read_s,
                              "dope": dlog.seconds, "image_reading": ahead.read_seconds if ahead else 0.0,
                              "fusion": pipe.timing["fusion"]},

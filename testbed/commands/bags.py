@@ -44,6 +44,9 @@ def register(sub) -> None:
     p.add_argument("--dope-every", type=int, default=None, help="run DOPE on every N-th image (default 1)")
     p.add_argument("--sequential", action="store_true",
                    help="run the detector in the message loop (default: ahead of it, on a second reader in a thread)")
+    p.add_argument("--odometry-only", action="store_true",
+                   help="the LiDAR odometry alone: no images read, no detector (trajectory, LiDAR map and "
+                        "map.png; labels.xlsx stays empty)")
     p.add_argument("--results-bag", default=None, help="where the results bag goes (default OUT/results_bag); "
                    "an existing path is refused unless --force, the input bag always")
     p.add_argument("--force", action="store_true", help="replace an existing --results-bag")
@@ -127,7 +130,10 @@ def replay(args) -> int:
     d, c = config.detector, config.components
     try:
         policy = resolve_policy(config.store.policy)
-        detector = load_detector(c.detector) if c.detector else make_detector(d.input, d.stages, d.fpr, config=d)
+        if args.odometry_only:
+            detector = None
+        else:
+            detector = load_detector(c.detector) if c.detector else make_detector(d.input, d.stages, d.fpr, config=d)
         odometry_factory(c.odometry)
     except ImportPathError as e:
         print(f"dopeslam replay: --{e}", file=sys.stderr)
@@ -157,7 +163,7 @@ def replay(args) -> int:
                                 weights=d.weights, policy=policy, topics=topics, dope_every=d.every,
                                 parallel=not args.sequential, results_bag=args.results_bag,
                                 loop_closure=config.loop_closure.enabled, vocabulary=config.loop_closure.vocabulary,
-                                detector=detector, odometry=c.odometry)
+                                detector=detector, odometry=c.odometry, odometry_only=args.odometry_only)
     except ImportPathError as e:  # the odometry's constructor failed
         print(f"dopeslam replay: --{e}", file=sys.stderr)
         return 2

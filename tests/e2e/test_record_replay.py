@@ -319,3 +319,18 @@ def test_replay_with_loop_closure(live, replayed, tmp_path):
     assert abs(o["ate_rmse_m"] - base["ate_rmse_m"]) < 0.02
     assert report["labels_summary"]["labelled"] == replayed["report"]["labels_summary"]["labelled"]
     assert (tmp_path / "lc" / "map.png").exists()
+
+
+def test_odometry_only_replay_reads_no_images(live, replayed, tmp_path):
+    """``dopeslam replay --odometry-only``: no detector, no image read; the same trajectory."""
+    out = tmp_path / "odo"
+    proc = subprocess.run([sys.executable, "-m", "testbed.cli", "-q", "replay", str(live["bag"]), "--odometry-only",
+                           "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    report = json.loads((out / "report.json").read_text())
+    assert report["odometry_only"] and report["detector"] == "none"
+    assert report["detection"]["frames"] == 0 and report["labels_summary"]["labels_in_map"] == 0
+    assert report["time_split_s"]["image_reading"] == 0.0
+    ta, tb = tum(replayed["out"] / "estimate_tum.txt"), tum(out / "estimate_tum.txt")
+    assert ta.shape == tb.shape
+    assert np.abs(ta[:, 1:4] - tb[:, 1:4]).max() < 1e-6
