@@ -19,11 +19,15 @@ log = logging.getLogger(__name__)
 
 
 
-def run_simulation(scenario=None, out_dir="out/simulate", seed=None, duration=None, samples: int = 3) -> dict:
+def run_simulation(scenario=None, out_dir="out/simulate", seed=None, duration=None, samples: int = 3,
+                   render_worker: bool | None = True) -> dict:
+    """Every sensor of an episode, no stack. Nothing here reads a segmentation image, so none is
+    rendered; the camera renders in a second process (``render_worker``; the same frames) so the
+    physics, the LiDAR and the renderer use both cores."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     wall0 = time.perf_counter()
-    with Episode(scenario, seed=seed, duration=duration) as ep:
+    with Episode(scenario, seed=seed, duration=duration, segmentation=False, render_worker=render_worker) as ep:
         cams = lids = 0
         points = []
         sample_at = set(np.linspace(0, max(1, int(ep.duration * ep.sc.sensors.camera_rate)) - 1, samples).astype(int))
