@@ -11,6 +11,7 @@ the pipeline's rule, see ``stack/pipeline.py``.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -380,6 +381,8 @@ def print_summary(report: dict) -> None:
     detector = report.get("detector", DOPE_DETECTOR)
     setup = f"{report['input']}, {report['stages']} stages, FPR {'on' if report['fpr'] else 'off'}" \
         if detector == DOPE_DETECTOR else f"detector {detector}"
+    if report.get("profile", "full") != "full":
+        setup += f", {report['profile']} profile: camera {report['camera_rate_hz']:g} Hz"
     print(f"{report['scenario']} seed {report['seed']} ({setup}, policy {report['policy']}): "
           f"{report['sim_seconds']:.0f} s simulated in {report['wall_seconds']:.0f} s")
     print(f"{'object':<12} {'id':>3} {'error cm':>9} {'false':>6}")
@@ -395,9 +398,11 @@ def print_summary(report: dict) -> None:
     print(summary_line(s))
     prec = "-" if d["precision"] is None else f"{100 * d['precision']:.1f}%"
     rec = "-" if d["recall"] is None else f"{100 * d['recall']:.1f}%"
+    if d.get("instances", 0) is None:
+        rec = "not scored (no segmentation image)"
     fps = "-" if d["fps"] is None else f"{d['fps']:.1f}"
     print(f"detection: {d['predictions']} predictions in {d['frames']} frames, precision {prec}, recall {rec}, "
-          f"{fps} frames/s; odometry ATE {100 * o['ate_rmse_m']:.1f} cm, RPE {o['rpe_trans_pct']:.2f} %")
+          f"{fps} frames/s; odometry ATE {100 * o['ate_rmse_m']:.1f} cm, RPE {o['rpe_trans_pct'] or math.nan:.2f} %")
     if "loop_closures" in o:
         print(f"loop closure: {o['loop_closures']} closures ({o['false_loop_closures']} false), "
               f"{o['loop_candidates_rejected']} candidates rejected; ATE {100 * o['ate_rmse_m']:.1f} cm closed-loop, "
