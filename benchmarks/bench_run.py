@@ -6,7 +6,7 @@ wall time (simulation incl. rendering, LiDAR odometry, DOPE incl. depth fit and 
 process's CPU seconds per simulated second. Other busy processes on the cores slow every row: note
 the load average printed with the table.
 
-    python benchmarks/bench_run.py [--scenario NAME] [--duration S] [--repeats N] [--stages 1-6]
+    python benchmarks/bench_run.py [--scenario NAME] [--duration S] [--repeats N] [--stages 1-6] [--profile full|fast]
 """
 from __future__ import annotations
 
@@ -26,6 +26,8 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's, 60 s)")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--stages", type=int, default=6)
+    ap.add_argument("--profile", choices=["full", "fast"], default="full",
+                    help="the run profile (fast: camera at half rate, no segmentation image; docs/speed.md)")
     args = ap.parse_args(argv)
 
     from testbed.run import run_episode
@@ -35,7 +37,7 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             c0 = time.process_time()
             r = run_episode(args.scenario, out_dir=tmp, seed=0, stages=args.stages, duration=args.duration,
-                            write_outputs=False)
+                            write_outputs=False, profile=args.profile)
             cpu = time.process_time() - c0
         split = r["time_split_s"]
         rows.append((i, r["sim_seconds"], r["wall_seconds"], split, cpu, r["labels_summary"]))

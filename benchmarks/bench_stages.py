@@ -21,7 +21,7 @@ The floors, measured on the same machine and the same data:
 - odometry: KISS-ICP's own ``KissICP.register_frame`` on the same sweeps (the points the simulator
   gave), times the sweep rate.
 
-    python benchmarks/bench_stages.py [--scenario NAME] [--duration S] [--seed N] [--set FIELD=VALUE]
+    python benchmarks/bench_stages.py [--scenario NAME] [--duration S] [--seed N] [--profile full|fast]
 """
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 STAGES = ("simulation", "rendering", "lidar", "odometry", "network", "fit_fpr", "fusion")
-LABELS = {"simulation": "simulation (physics, ground truth, harness)", "rendering": "rendering (RGB + depth + seg, noise)",
+LABELS = {"simulation": "simulation (physics, ground truth, harness)", "rendering": "rendering (RGB + depth (+ seg: full profile), noise)",
           "lidar": "LiDAR ray casting", "odometry": "KISS-ICP odometry (+ floor fit)", "network": "DOPE network",
           "fit_fpr": "depth fit + FPR (+ decode, PnP, colour check)", "fusion": "fusion + evidence"}
 
@@ -127,7 +127,7 @@ def kiss_floor(scans, config) -> float:
     return (time.process_time() - t0) / max(len(scans), 1)
 
 
-def measure(scenario=None, duration=None, seed=0) -> dict:
+def measure(scenario=None, duration=None, seed=0, profile: str = "full") -> dict:
     os.environ.setdefault("DOPESLAM_RENDER_WORKER", "0")  # render here, so the rendering's CPU is counted
     from sim.episode import Episode
     from stack.dope_fpr import DopeDetector
@@ -149,7 +149,7 @@ def measure(scenario=None, duration=None, seed=0) -> dict:
         if "floors" not in handles and "frame" in handles:
             f = handles["frame"]
             handles["floors"] = render_floor(self.client, self.renderer, f.T_world_camera, f.info)
-            handles["camera_rate"] = self.sc.sensors.camera_rate
+            handles["camera_rate"] = self.camera_rate
             handles["lidar_rate"] = 1.0 / self.beams.period
         return orig_close(self)
 
@@ -169,7 +169,7 @@ def measure(scenario=None, duration=None, seed=0) -> dict:
     try:
         with tempfile.TemporaryDirectory() as tmp:
             w0, c0 = time.perf_counter(), time.process_time()
-            r = run_episode(scenario, out_dir=tmp, seed=seed, duration=duration, write_outputs=False)
+            r = run_episode(scenario, out_dir=tmp, seed=seed, duration=duration, write_outputs=False, profile=profile)
             cpu, wall = time.process_time() - c0, time.perf_counter() - w0
     finally:
         Episode.close, LidarOdometry.process, DopeDetector.detect = orig_close, orig_process, orig_detect
@@ -183,6 +183,8 @@ def measure(scenario=None, duration=None, seed=0) -> dict:
     if "floors" in handles:
         seg, noseg = handles["floors"]
         floors["rendering"] = (seg * handles["camera_rate"], noseg * handles["camera_rate"])
+        if profile == "fast":  # no segmentation image rendered: its floor is the one without
+            floors["rendering"] = (noseg * handles["camera_rate"], noseg * handles["camera_rate"])
     if det is not None:
         flops = network_flops(det)
         gflops = matmul_gflops()
@@ -191,7 +193,7 @@ def measure(scenario=None, duration=None, seed=0) -> dict:
         flops = gflops = None
     if scans:
         floors["odometry"] = kiss_floor(scans, handles["odom_config"]) * len(scans) / sim_s
-    return {"sim_s": sim_s, "wall_s": wall, "cpu_s": cpu, "stages": meter.cpu, "calls": meter.calls,
+    return {"sim_s": sim_s, "wall_s": wall, "cpu_s": cpu, "stages": meter.cpu, "calls": meter.calls, "profile": profile,
             "floors": floors, "flops": flops, "gflops": gflops, "images": len(frames), "scans": len(scans),
             "labels": r["labels_summary"]}
 
@@ -201,7 +203,8 @@ def table(m: dict) -> str:
     fl = m["floors"]
     lines = ["| stage | CPU s / sim s | floor, CPU s / sim s | stage / floor | floor measured as |",
              "|---|---:|---:|---:|---|"]
-    how = {"rendering": "getCameraImage alone, with segmentation (without: {:.3f})",
+    how = {"rendering": "getCameraImage alone, with segmentation (without: {:.3f})" if m.get("profile", "full") == "full"
+           else "getCameraImage alone, without segmentation ({:.3f})",
            "network": "{flops:.2f} GFLOP per image at {gf:.1f} GFLOP/s (fp32 matmul)",
            "odometry": "KissICP.register_frame on the same sweeps"}
     for st in STAGES:
@@ -225,13 +228,15 @@ def main(argv=None) -> int:
     ap.add_argument("--scenario", default=None, help="bundled name or TOML (default: the default scenario)")
     ap.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's, 60 s)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--profile", choices=["full", "fast"], default="full",
+                    help="the run profile (fast: camera at half rate, no segmentation image; docs/speed.md)")
     args = ap.parse_args(argv)
     if args.duration is not None and args.duration <= 0:
         print(f"--duration: expected seconds > 0, got {args.duration}", file=sys.stderr)
         return 2
-    m = measure(args.scenario, args.duration, args.seed)
+    m = measure(args.scenario, args.duration, args.seed, args.profile)
     ls = m["labels"]
-    print(f"{m['sim_s']:.0f} s simulated, {m['images']} images, {m['scans']} sweeps; {m['cpu_s']:.1f} CPU s, "
+    print(f"profile {args.profile}: {m['sim_s']:.0f} s simulated, {m['images']} images, {m['scans']} sweeps; {m['cpu_s']:.1f} CPU s, "
           f"{m['wall_s']:.1f} wall s; torch threads {os.environ.get('DOPESLAM_TORCH_THREADS', 'default')}; "
           f"load average {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print(f"map: {ls['labelled']}/{ls['objects']} labelled, {ls['false_labels']} false")
