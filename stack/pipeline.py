@@ -262,7 +262,13 @@ class DopeSlam:
         self._pending = keep
 
     def _fuse_image(self, img: _Waiting) -> None:
-        pose_at = self.odometry.pose_at
+        poses: dict[float, np.ndarray | None] = {}  # an image's detections share its stamp: one lookup
+
+        def pose_at(t: float):
+            if t not in poses:
+                poses[t] = self.odometry.pose_at(t)
+            return poses[t]
+
         fused, seen = [], set()
         for det in img.detections:
             if pose_at(det.stamp) is None:

@@ -83,6 +83,12 @@ def interpolate_trajectory(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray 
     if len(stamps) == 1:
         out = np.repeat(poses[:1], len(tq), axis=0)
         return out[0] if scalar else out
+    if scalar and len(stamps) > 2:
+        # one query: only its segment, the one scipy's Slerp picks (at a stamp: the segment ending
+        # there, the first at the first stamp), so a lookup costs the same however long the
+        # trajectory is; the same bits as the whole trajectory gives
+        j = min(max(int(np.searchsorted(stamps, tq[0], side="left")) - 1, 0), len(stamps) - 2)
+        stamps, poses = stamps[j:j + 2], np.asarray(poses)[j:j + 2]
     rots = Rotation.from_matrix(poses[:, :3, :3])
     slerp = Slerp(stamps, rots)
     out = np.tile(np.eye(4), (len(tq), 1, 1))
