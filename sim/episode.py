@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import tempfile
 from typing import Iterator
 
 import cv2
@@ -24,7 +25,7 @@ from sim.robot import Jackal
 from sim.scenario import Scenario, ScenarioError, load_scenario, with_overrides
 from sim.world import build_world
 from stack.messages import CameraFrame, LidarScan, WheelOdometry
-from stack.transforms import interpolate_trajectory, inv, transform_points, yaw_of
+from stack.transforms import from_xyz_quat, interpolate_trajectory, inv, transform_points, yaw_of
 
 log = logging.getLogger(__name__)
 
@@ -86,34 +87,141 @@ def _interpolate_poses(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> 
 
 
 class GroundTruth:
-    """``base_link`` in ``world`` at every physics step so far, kept in two arrays that grow by doubling
-    (a pose costs its 136 bytes, not a Python object per step: a long episode's record stays compact,
-    and reading it is a view, not a copy)."""
+    """``base_link`` in ``world`` at every physics step so far: per step its stamp, position and
+    quaternion (64 bytes; the 4x4 matrices are rebuilt as they are read, bit for bit the ones the
+    episode computed from the same quaternion).
 
-    def __init__(self, capacity: int = 4096):
-        self._stamps = np.empty(capacity)
-        self._poses = np.empty((capacity, 4, 4))
-        self._n = 0
+    The newest ``memory_rows`` steps (a little over two minutes at 240 Hz) stay in memory; older
+    ones are appended to an unnamed temporary file, deleted when the record is garbage-collected or
+    the process ends (``close()`` deletes it at once). So an episode of any length keeps the same
+    memory; a long one costs 64 bytes of disk per step (55 MB an hour at 240 Hz). Lookups
+    (:meth:`T_world_base_at`) read only the rows they interpolate between. Stamps must increase.
+    """
 
-    def add(self, stamp: float, T_world_base: np.ndarray) -> None:
-        if self._n == len(self._stamps):  # twice the room; the new half's pages stay untouched until used
-            stamps, poses = np.empty(2 * self._n), np.empty((2 * self._n, 4, 4))
-            stamps[:self._n], poses[:self._n] = self._stamps, self._poses
-            self._stamps, self._poses = stamps, poses
-        self._stamps[self._n] = stamp
-        self._poses[self._n] = T_world_base
-        self._n += 1
+    ROW = 8  # stamp, x, y, z, qx, qy, qz, qw (float64)
+    BLOCK = 1024  # rows per entry of the stamp index (the first stamp of every block is kept in memory)
+
+    def __init__(self, memory_rows: int = 1 << 15):
+        if memory_rows < 1 or memory_rows % self.BLOCK:
+            raise ValueError(f"memory_rows must be a positive multiple of {self.BLOCK}, got {memory_rows}")
+        self._buf = np.empty((memory_rows, self.ROW))  # pages are touched only as rows arrive
+        self._n_buf = 0  # rows in the buffer
+        self._n_file = 0  # rows in the file (all older than the buffer's)
+        self._file = None
+        self._firsts: list[float] = []  # first stamp of each block of BLOCK rows
+
+    def __len__(self) -> int:
+        return self._n_file + self._n_buf
+
+    def add(self, stamp: float, xyz, quat_xyzw) -> None:
+        """One step: ``base_link``'s position and orientation (x, y, z, w) in ``world`` at ``stamp``."""
+        if self._n_buf == len(self._buf):
+            self._spill()
+        n = len(self)
+        if n % self.BLOCK == 0:
+            self._firsts.append(float(stamp))
+        row = self._buf[self._n_buf]
+        row[0] = stamp
+        row[1:4] = xyz
+        row[4:8] = quat_xyzw
+        self._n_buf += 1
+
+    def _spill(self) -> None:
+        if self._file is None:
+            self._file = tempfile.TemporaryFile(prefix="dopeslam-groundtruth-")
+        self._file.seek(0, os.SEEK_END)
+        self._file.write(self._buf[:self._n_buf].tobytes())
+        self._file.flush()
+        self._n_file += self._n_buf
+        self._n_buf = 0
+
+    def close(self) -> None:
+        """Delete the temporary file now (the record then holds only its in-memory rows)."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def rows(self, i0: int = 0, i1: int | None = None) -> np.ndarray:
+        """Rows ``[i0, i1)`` as a new (k, 8) array: stamp, x, y, z, qx, qy, qz, qw."""
+        n = len(self)
+        i1 = n if i1 is None else min(int(i1), n)
+        i0 = max(0, int(i0))
+        out = np.empty((max(0, i1 - i0), self.ROW))
+        if i1 <= i0:
+            return out
+        f1 = min(i1, self._n_file)
+        if i0 < f1:
+            if self._file is None:
+                raise RuntimeError("the ground-truth record's older rows were deleted (close() was called)")
+            want = (f1 - i0) * self.ROW * 8
+            data = bytearray()
+            while len(data) < want:
+                chunk = os.pread(self._file.fileno(), want - len(data), i0 * self.ROW * 8 + len(data))
+                if not chunk:
+                    raise RuntimeError("the ground-truth record's temporary file is shorter than expected")
+                data += chunk
+            out[:f1 - i0] = np.frombuffer(bytes(data), dtype=np.float64).reshape(-1, self.ROW)
+        if i1 > self._n_file:
+            b0 = max(i0, self._n_file)
+            out[b0 - i0:] = self._buf[b0 - self._n_file:i1 - self._n_file]
+        return out
+
+    @staticmethod
+    def _matrices(rows: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(rows), 4, 4))
+        if len(rows):
+            out[:, :3, :3] = Rotation.from_quat(rows[:, 4:8]).as_matrix()
+        out[:, :3, 3] = rows[:, 1:4]
+        out[:, 3, 3] = 1.0
+        return out
+
+    def window(self, i0: int = 0, i1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps, T_world_base (k, 4, 4)) of rows ``[i0, i1)``."""
+        r = self.rows(i0, i1)
+        return r[:, 0].copy(), self._matrices(r)
 
     @property
     def base_stamps(self) -> np.ndarray:
-        return self._stamps[:self._n]
+        """Every stamp so far (a new array)."""
+        return self.rows()[:, 0].copy()
 
     @property
     def base_poses(self) -> np.ndarray:
-        return self._poses[:self._n]
+        """Every pose so far as (N, 4, 4) (a new array: 136 bytes a step while it is held)."""
+        return self._matrices(self.rows())
 
     T_world_base = base_poses
     stamps = base_stamps
+
+    def _count_below(self, t: np.ndarray) -> np.ndarray:
+        """Per query, how many stamps are below it (``np.searchsorted(stamps, t, "left")``), reading
+        one block of stamps per block the queries fall in."""
+        firsts = np.asarray(self._firsts)
+        blocks = np.searchsorted(firsts, t, side="left") - 1  # the last block starting below t
+        out = np.zeros(len(t), dtype=np.int64)
+        for b in np.unique(blocks[blocks >= 0]):
+            sel = blocks == b
+            stamps = self.rows(b * self.BLOCK, (b + 1) * self.BLOCK)[:, 0]
+            out[sel] = b * self.BLOCK + np.searchsorted(stamps, t[sel], side="left")
+        return out
+
+    def T_world_base_at(self, t) -> np.ndarray:
+        """``interpolate_trajectory(stamps, T_world_base, t)`` over the whole record, bit for bit, reading
+        only the two rows around each query: (4, 4) for a scalar t, else (M, 4, 4)."""
+        n = len(self)
+        if n == 0:
+            raise ValueError("no ground truth yet")
+        tq = np.atleast_1d(np.asarray(t, dtype=float))
+        if n <= 2:
+            r = self.rows()
+            return interpolate_trajectory(r[:, 0], self._matrices(r), t)
+        # the segment the whole trajectory's interpolation takes for each query (see interpolate_trajectory)
+        ends = self.rows(0, 1)[0, 0], self.rows(n - 1, n)[0, 0]
+        j = np.clip(self._count_below(np.clip(tq, *ends)) - 1, 0, n - 2)
+        need = np.unique(np.concatenate([j, j + 1]))
+        runs = np.split(need, np.flatnonzero(np.diff(need) > 1) + 1)  # consecutive rows read together
+        r = np.concatenate([self.rows(run[0], run[-1] + 1) for run in runs])
+        return interpolate_trajectory(r[:, 0], self._matrices(r), t)
 
 
 class Episode:
@@ -217,8 +325,9 @@ class Episode:
                 level = float(lvl)
         return level
 
-    def T_world_base_at(self, t: float) -> np.ndarray:
-        return interpolate_trajectory(self.groundtruth.stamps, self.groundtruth.T_world_base, t)
+    def T_world_base_at(self, t: float | np.ndarray) -> np.ndarray:
+        """``base_link`` in ``world`` at t (interpolated between physics steps; clamped at the ends)."""
+        return self.groundtruth.T_world_base_at(t)
 
     def close(self) -> None:
         if getattr(self, "_render_worker", None) is not None:
@@ -252,10 +361,11 @@ class Episode:
         wall0 = time.perf_counter()
         for k in range(steps + 1):
             t = k * self.dt
-            T_world_base = self.robot.T_world_base()
+            xyz, quat = self.robot.xyz_quat_world_base()
+            T_world_base = from_xyz_quat(xyz, quat)
             if self.events is not None and self.events.step(t, T_world_base[:2, 3]):
                 self._boxes_changed = True
-            self.groundtruth.add(t, T_world_base)
+            self.groundtruth.add(t, xyz, quat)
             if k > 0:
                 self.robot.update_odometry(self.dt)
             out = []
@@ -295,7 +405,7 @@ class Episode:
             self.caster = BoxRayCaster(self.world.boxes)
             self._boxes_changed = False
         n = int(round(self.beams.period / self.dt)) + 2
-        T_wb = _interpolate_poses(np.asarray(gt.base_stamps[-n:]), np.asarray(gt.base_poses[-n:]), stamp + col_t)
+        T_wb = _interpolate_poses(*gt.window(len(gt) - n), stamp + col_t)
         T_ws = T_wb @ self._T_base_velodyne  # (A, 4, 4) sensor pose at each column's firing time
         R = T_ws[:, :3, :3]
         # world ray directions per component: R @ dirs, with dirs (A, R, 3) split once per episode

@@ -51,8 +51,11 @@ class Jackal:
         return from_xyz_quat(st[4], st[5])
 
     def T_world_base(self) -> np.ndarray:
-        pos, quat = p.getBasePositionAndOrientation(self.body, physicsClientId=self.client)
-        return from_xyz_quat(pos, quat)
+        return from_xyz_quat(*self.xyz_quat_world_base())
+
+    def xyz_quat_world_base(self) -> tuple[tuple, tuple]:
+        """``base_link`` in ``world`` as PyBullet gives it: position and quaternion (x, y, z, w)."""
+        return p.getBasePositionAndOrientation(self.body, physicsClientId=self.client)
 
     @property
     def T_base_velodyne(self) -> np.ndarray:

@@ -57,11 +57,12 @@ class Evidence:
 
 
 def evidence_of(obj, config: EvidenceConfig, floor: tuple[np.ndarray, float] | None) -> Evidence:
-    """``obj``: a ``MapObject`` (label pose, size and observation history)."""
+    """``obj``: a ``MapObject`` (label pose, size and observation history; an observation that stands
+    for several in a thinned history counts its ``weight``)."""
     obs = [o for o in obj.history if o.fpr_pass and not (o.range_m > config.max_range_m)]
     stamps = [o.stamp for o in obs]
     span = float(max(stamps) - min(stamps)) if stamps else 0.0
-    return Evidence(len(obs), span, view_angle_deg(obj.xyz, [o.cam_xyz for o in obs if o.cam_xyz is not None]),
+    return Evidence(sum(getattr(o, "weight", 1) for o in obs), span, view_angle_deg(obj.xyz, [o.cam_xyz for o in obs if o.cam_xyz is not None]),
                     lowest_corner_height(obj.xyz, obj.quat_xyzw, obj.size, floor))
 
 

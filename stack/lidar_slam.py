@@ -45,6 +45,7 @@ from scipy.spatial.transform import Rotation
 
 from stack.errors import DopeSlamError
 from stack.messages import LidarScan, WheelOdometry
+from stack.pose_track import PoseTrack
 from stack.transforms import interpolate_trajectory, inv
 
 log = logging.getLogger(__name__)
@@ -163,9 +164,11 @@ class LidarOdometry:
             raise ValueError(f"T_base_velodyne must be 4x4, got {self.T_base_velodyne.shape}")
         self._T_velodyne_base = inv(self.T_base_velodyne)
         self._icp = KissICP(self.config.to_kiss())
-        self._stamps: list[float] = []
-        self._poses: list[np.ndarray] = []  # T_map_base
-        self._twists: list[np.ndarray] = []  # sensor velocity arriving at each pose (zero at the first)
+        self._track = PoseTrack()  # T_map_base per registered scan
+        # sensor velocity arriving at a pose (zero at the first): what extrapolation before the first
+        # pose (the second pose's) and after the last (the last pose's) uses
+        self._twist_early: list[np.ndarray] = []  # at the first two poses
+        self._twist_last: np.ndarray | None = None
         self._T_v0_v = np.eye(4)  # last sensor pose in KISS-ICP's frame (velodyne at the first scan)
         self._twist = np.zeros(6)  # sensor body velocity (v, omega) per second
         self._period: float | None = None  # last observed time between poses
@@ -191,10 +194,10 @@ class LidarOdometry:
         t_ref = float(scan.stamp + (0.5 * (times.min() + times.max()) if times.size else 0.0))
         sweep_s = float(np.ptp(times)) if times.size else 0.0
 
-        dt = None if not self._stamps else t_ref - self._stamps[-1]
+        dt = None if not self._track else t_ref - float(self._track.stamps[-1])
         if dt is not None and dt <= 0:
             log.warning("scan at %.6f s is not after the previous pose (%.6f s): time went backwards or "
-                        "repeated; scan skipped", t_ref, self._stamps[-1])
+                        "repeated; scan skipped", t_ref, float(self._track.stamps[-1]))
             self.stats.skipped_time += 1
             return None
         twist = self._twist
@@ -227,7 +230,7 @@ class LidarOdometry:
         prediction = self._T_v0_v @ se3_exp(twist * horizon)
         ground = None
         if self.config.floor_constraint:
-            if self._floor is None and not self._stamps:
+            if self._floor is None and not self._track:
                 self._floor = self._find_floor(frame)
             if self._floor is not None:
                 ground = self._ground_mask(frame, prediction)
@@ -240,10 +243,10 @@ class LidarOdometry:
         new_pose = self._icp.registration.align_points_to_map(
             points=source, voxel_map=self._icp.local_map, initial_guess=prediction,
             max_correspondance_distance=3 * sigma, kernel=sigma)
-        if ground is not None and self._stamps:
+        if ground is not None and self._track:
             new_pose = self._level_on_floor(new_pose, frame[ground], t_ref)
         model_deviation = inv(prediction) @ new_pose
-        if self._stamps and np.linalg.norm(model_deviation[:3, 3]) > self.config.max_correction_m:
+        if self._track and np.linalg.norm(model_deviation[:3, 3]) > self.config.max_correction_m:
             log.warning("scan at %.6f s: ICP moved the prediction by %.2f m (max_correction_m=%.2f); "
                         "the pose may be wrong", t_ref, np.linalg.norm(model_deviation[:3, 3]),
                         self.config.max_correction_m)
@@ -260,9 +263,10 @@ class LidarOdometry:
         self._icp.last_pose, self._icp.last_delta = new_pose, se3_exp(self._twist * (self._period or 0.0))
 
         T_map_base = self.T_base_velodyne @ new_pose @ self._T_velodyne_base
-        self._stamps.append(t_ref)
-        self._poses.append(T_map_base)
-        self._twists.append(self._twist.copy())
+        self._track.append(t_ref, T_map_base)
+        if len(self._twist_early) < 2:
+            self._twist_early.append(self._twist.copy())
+        self._twist_last = self._twist.copy()
         self.last_points_base = frame_downsample @ self.T_base_velodyne[:3, :3].T + self.T_base_velodyne[:3, 3]
         self.stats.scans_used += 1
         return T_map_base
@@ -370,7 +374,7 @@ class LidarOdometry:
     # ------------------------------------------------------------------ queries
 
     def __len__(self) -> int:
-        return len(self._stamps)
+        return len(self._track)
 
     def floor_plane_map(self) -> tuple[np.ndarray, float] | None:
         """The floor the first scan found, in ``map``: (unit normal n pointing up, d) with n.x + d = 0
@@ -383,54 +387,63 @@ class LidarOdometry:
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps (N,), T_map_base (N, 4, 4)) of every registered scan."""
-        return np.array(self._stamps), np.array(self._poses).reshape(-1, 4, 4)
+        return self._track.arrays()
 
     def pose_at(self, t: float) -> np.ndarray | None:
         """``T_map_base`` at time t: SE(3) interpolation between scans; constant-velocity extrapolation
         up to ``max_extrapolation_s`` past either end; None when further out or before any scan."""
-        if not self._stamps:
+        if not self._track:
             return None
-        t0, t1 = self._stamps[0], self._stamps[-1]
+        stamps, poses = self._track.stamps, self._track.poses
+        t0, t1 = float(stamps[0]), float(stamps[-1])
         lim = self.config.max_extrapolation_s
         if t < t0 - lim or t > t1 + lim:
             return None
         if t0 <= t <= t1:
-            return interpolate_trajectory(np.array(self._stamps), np.array(self._poses), t)
+            return interpolate_trajectory(stamps, poses, t)
         # velocity is per second in the sensor frame; conjugate into base_link
         i = 0 if t < t0 else -1
-        twist = self._twists[min(1, len(self._twists) - 1)] if i == 0 else self._twists[-1]
+        twist = self._twist_early[-1] if i == 0 else self._twist_last
         twist_base = se3_log(self.T_base_velodyne @ se3_exp(twist) @ self._T_velodyne_base)
-        return self._poses[i] @ se3_exp(twist_base * (t - self._stamps[i]))
+        return poses[i] @ se3_exp(twist_base * (t - float(stamps[i])))
 
 
 class WheelOdometryTrack:
     """Wheel odometry re-expressed like the LiDAR odometry: ``T_map_base`` with ``map`` = base at the first message."""
 
     def __init__(self):
-        self._stamps: list[float] = []
-        self._poses: list[np.ndarray] = []
+        self._track = PoseTrack()
         self._T_base0_odom: np.ndarray | None = None
 
     def add(self, msg: WheelOdometry) -> np.ndarray:
-        if self._stamps and msg.stamp <= self._stamps[-1]:
+        if self._track and msg.stamp <= self._track.stamps[-1]:
             log.warning("wheel odometry at %.6f s is not after the previous one (%.6f s): ignored",
-                        msg.stamp, self._stamps[-1])
-            return self._poses[-1]
+                        msg.stamp, float(self._track.stamps[-1]))
+            return self._track.poses[-1].copy()
         if self._T_base0_odom is None:
             self._T_base0_odom = inv(np.asarray(msg.T_odom_base, dtype=float))
         T = self._T_base0_odom @ msg.T_odom_base
-        self._stamps.append(float(msg.stamp))
-        self._poses.append(T)
+        self._track.append(float(msg.stamp), T)
         return T
 
     def __len__(self) -> int:
-        return len(self._stamps)
+        return len(self._track)
+
+    @property
+    def stamps(self) -> np.ndarray:
+        """The stamps so far (a read-only view)."""
+        return self._track.stamps
+
+    @property
+    def poses(self) -> np.ndarray:
+        """The poses so far, (N, 4, 4) (a read-only view)."""
+        return self._track.poses
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        return np.array(self._stamps), np.array(self._poses).reshape(-1, 4, 4)
+        return self._track.arrays()
 
     def pose_at(self, t) -> np.ndarray:
         """Interpolated (clamped at the ends) pose(s) at t."""
-        if not self._stamps:
+        if not self._track:
             raise ValueError("no wheel odometry yet")
-        return interpolate_trajectory(np.array(self._stamps), np.array(self._poses), t)
+        return interpolate_trajectory(self._track.stamps, self._track.poses, t)

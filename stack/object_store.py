@@ -5,6 +5,12 @@ same class within a gate, or starts a new object with the next unique integer ID
 object's label (pose) is recomputed from its observation history by a labelling policy;
 policies are plain functions of a list of observations, so they work offline too.
 
+An object's history is bounded: past ``history_limit`` observations (4096 by default, more than an
+object collects in any scenario shipped here) its older half is thinned, every second observation
+dropped and counted by the one kept before it (``Observation.weight``), so a robot that watches an
+object for hours keeps a few hundred kilobytes per object and a fixed cost per observation, with
+counts and labels close to those of the whole history (see ``thin_history``).
+
 The store is saved as ``.xlsx`` (one row per object, editable by hand, as in the paper)
 or ``.json`` (the same plus each object's observation history). Saves are atomic. Rows
 marked ``edited`` in the file being replaced are kept unless ``overwrite=True``. A file
@@ -71,6 +77,7 @@ class Observation:
     fpr_pass: bool = True
     range_m: float = math.nan  # camera-to-object distance when seen
     cam_xyz: np.ndarray | None = None  # (3,) camera position in the map when seen (the viewpoint)
+    weight: int = 1  # how many observations this one stands for (more than 1 once a long history was thinned)
 
     @staticmethod
     def from_detection(det: Detection, T_map_obj: np.ndarray, T_map_cam: np.ndarray | None = None) -> "Observation":
@@ -85,6 +92,8 @@ class Observation:
              "fpr_pass": self.fpr_pass, "range_m": _nan_to_none(self.range_m)}
         if self.cam_xyz is not None:
             d["cam_xyz"] = [float(v) for v in self.cam_xyz]
+        if self.weight != 1:
+            d["weight"] = int(self.weight)
         return d
 
     @staticmethod
@@ -93,8 +102,11 @@ class Observation:
         cam = None if d.get("cam_xyz") is None else np.asarray(d["cam_xyz"], dtype=float)
         if xyz.shape != (3,) or quat.shape != (4,) or (cam is not None and cam.shape != (3,)):
             raise ValueError("expected xyz of 3, quat_xyzw of 4 and cam_xyz (if given) of 3 numbers")
+        weight = d.get("weight", 1)
+        if isinstance(weight, bool) or not isinstance(weight, (int, float)) or weight != int(weight) or weight < 1:
+            raise ValueError(f"expected a weight that is a whole number >= 1, got {weight!r}")
         return Observation(float(d["stamp"]), str(d["cls"]), xyz, quat, _none_to_nan(d.get("belief_sum")),
-                           bool(d.get("fpr_pass", True)), _none_to_nan(d.get("range_m")), cam)
+                           bool(d.get("fpr_pass", True)), _none_to_nan(d.get("range_m")), cam, int(weight))
 
 
 # --- Labelling policies: observations (time order) -> label, or None when none qualifies ---------
@@ -177,17 +189,93 @@ def robust_mean(obs: Sequence[Observation], k: float = 3.0, floor_m: float = 0.0
 
     A detection is an outlier when it is further from the coordinate-wise median than
     k robust sigmas (1.4826 x the median distance), and never within ``floor_m``.
+    Observations that stand for several (``weight``, in a thinned history) count that many times:
+    weighted medians, means and rotation mean.
     """
     ok = _passing(obs)
     if not ok:
         return None
     P = np.array([o.xyz for o in ok], dtype=float)
+    if any(o.weight != 1 for o in ok):
+        return _robust_mean_weighted(ok, P, k, floor_m)
     r = np.linalg.norm(P - np.median(P, axis=0), axis=1)
     inlier = r <= max(k * 1.4826 * np.median(r), floor_m)
     quat = Rotation.from_quat(np.array([o.quat_xyzw for o in ok])[inlier]).mean().as_quat()
     beliefs = np.array([o.belief_sum for o in ok])[inlier]
     score = float(np.mean(beliefs[~np.isnan(beliefs)])) if np.any(~np.isnan(beliefs)) else math.nan
     return Label(P[inlier].mean(axis=0), quat, score)
+
+
+def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    """The median of ``values`` with each repeated ``weights`` times (whole numbers): for unit weights,
+    ``np.median`` (the mean of the two middle values when their number is even)."""
+    order = np.argsort(values, kind="stable")
+    v, c = np.asarray(values, dtype=float)[order], np.cumsum(np.asarray(weights)[order])
+    total = c[-1]
+    lo = v[np.searchsorted(c, (total - 1) // 2, side="right")]  # the values at the middle position(s)
+    hi = v[np.searchsorted(c, total // 2, side="right")]
+    return float(0.5 * (lo + hi))
+
+
+def _robust_mean_weighted(ok: Sequence[Observation], P: np.ndarray, k: float, floor_m: float) -> Label:
+    w = np.array([o.weight for o in ok], dtype=np.int64)
+    med = np.array([weighted_median(P[:, i], w) for i in range(3)])
+    r = np.linalg.norm(P - med, axis=1)
+    inlier = r <= max(k * 1.4826 * weighted_median(r, w), floor_m)
+    wi = w[inlier].astype(float)
+    quat = Rotation.from_quat(np.array([o.quat_xyzw for o in ok])[inlier]).mean(weights=wi).as_quat()
+    beliefs = np.array([o.belief_sum for o in ok])[inlier]
+    known = ~np.isnan(beliefs)
+    score = float(np.average(beliefs[known], weights=wi[known])) if np.any(known) else math.nan
+    return Label(np.average(P[inlier], axis=0, weights=wi), quat, score)
+
+
+HISTORY_LIMIT = 4096  # observations an object keeps before its older half is thinned (``thin_history``)
+
+
+def thin_history(history: list[Observation], keep_newest: int, keep_older: int) -> list[Observation]:
+    """``history`` (time order) with its observations before the newest ``keep_newest`` thinned to about
+    ``keep_older``: the FPR-passing ones and the rejected ones are each cut, in time order, into runs
+    of equal total ``weight`` W (the smallest power of two that leaves at most ``keep_older``), and
+    each run is kept as its first observation, standing for the whole run (its ``weight``). So sums
+    of weights (the evidence's counts) stay exact, and the kept observations sample the past evenly
+    (medians and means over them, weighted, follow those over the whole history).
+
+    Kept as they are: the newest ``keep_newest`` (``last``, ``last-fpr`` and what the label follows
+    now), the first observation and the first passing one (the time span), and the passing ones with
+    the lowest belief sum and the shortest range (``best-score``, ``closest-fpr``)."""
+    cut = max(0, len(history) - max(0, int(keep_newest)))
+    older, newest = history[:cut], history[cut:]
+    passing = [o for o in history if o.fpr_pass]
+    pinned = {id(history[0])} if history else set()
+    if passing:
+        pinned.add(id(passing[0]))
+        pinned.add(id(min(passing, key=lambda o: o.belief_sum if not math.isnan(o.belief_sum) else math.inf)))
+        pinned.add(id(min(passing, key=lambda o: o.range_m if not math.isnan(o.range_m) else math.inf)))
+    groups = [[i for i, o in enumerate(older) if o.fpr_pass == flag and id(o) not in pinned] for flag in (True, False)]
+    totals = [sum(older[i].weight for i in g) for g in groups]
+    run_weight = 1
+    while sum(-(-t // run_weight) for t in totals) > max(1, int(keep_older)):
+        run_weight *= 2
+    kept: dict[int, Observation] = {i: o for i, o in enumerate(older) if id(o) in pinned}
+    for g in groups:
+        first, weight = None, 0
+        for i in g:
+            if first is None:
+                first = i
+            weight += older[i].weight
+            if weight >= run_weight:
+                kept[first] = _with_weight(older[first], weight)
+                first, weight = None, 0
+        if first is not None:
+            kept[first] = _with_weight(older[first], weight)
+    return [kept[i] for i in sorted(kept)] + list(newest)
+
+
+def _with_weight(o: Observation, weight: int) -> Observation:
+    if weight == o.weight:
+        return o
+    return Observation(o.stamp, o.cls, o.xyz, o.quat_xyzw, o.belief_sum, o.fpr_pass, o.range_m, o.cam_xyz, int(weight))
 
 
 # --- The store ------------------------------------------------------------------------------------
@@ -236,11 +324,17 @@ class ObjectStore:
     ``evidence``: what an object needs to be published as a label (``stack.evidence``);
     None publishes every object. ``floor``: the floor plane in the map (n, d), from the
     odometry, for the evidence's floor check. ``publish()`` sets every object's status.
+    ``history_limit``: the observations an object keeps before its older half is thinned
+    (``thin_history``; at least 2).
     """
 
     def __init__(self, dims: Mapping[str, Sequence[float]] | None = None, gate_m: float = 0.5,
-                 policy: str = "robust-mean", evidence: EvidenceConfig | None = EvidenceConfig()):
+                 policy: str = "robust-mean", evidence: EvidenceConfig | None = EvidenceConfig(),
+                 history_limit: int = HISTORY_LIMIT):
         get_policy(policy)
+        if int(history_limit) < 2:
+            raise ValueError(f"history_limit must be at least 2, got {history_limit}")
+        self.history_limit = int(history_limit)
         self.dims = {c: np.asarray(v, dtype=float) for c, v in (dims or {}).items()}
         self.gate_m = float(gate_m)
         self.policy = policy
@@ -321,7 +415,9 @@ class ObjectStore:
 
     def _record(self, obj: MapObject, obs: Observation) -> None:
         obj.history.append(obs)
-        obj.observations += 1
+        if len(obj.history) > self.history_limit:
+            obj.history = thin_history(obj.history, self.history_limit // 2, self.history_limit // 4)
+        obj.observations += obs.weight
         obj.first_seen, obj.last_seen = min(obj.first_seen, obs.stamp), max(obj.last_seen, obs.stamp)
         if not obj.edited:
             label = label_of(obj.history, self.policy)

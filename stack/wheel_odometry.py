@@ -13,6 +13,7 @@ import numpy as np
 
 from stack.lidar_slam import WheelOdometryTrack
 from stack.messages import LidarScan, WheelOdometry
+from stack.pose_track import PoseTrack
 from stack.transforms import interpolate, interpolate_trajectory, inv, transform_points
 
 
@@ -26,19 +27,18 @@ class WheelOnlyOdometry:
         self.max_extrapolation_s = float(max_extrapolation_s)
         self.wheel = WheelOdometryTrack()
         self.last_points_base: np.ndarray | None = None
-        self._stamps: list[float] = []
-        self._poses: list[np.ndarray] = []
+        self._track = PoseTrack()  # T_map_base per registered sweep
         self._T_map_odom: np.ndarray | None = None  # inv(wheel pose at the first sweep)
 
     def __len__(self) -> int:
-        return len(self._stamps)
+        return len(self._track)
 
     def on_wheel_odometry(self, msg: WheelOdometry) -> None:
         self.wheel.add(msg)
 
     def _wheel_at(self, t: float) -> np.ndarray | None:
         """The wheel pose (its own frame) at t: interpolated; extrapolated a little past the newest."""
-        stamps, poses = self.wheel.trajectory()
+        stamps, poses = self.wheel.stamps, self.wheel.poses
         if not len(stamps) or t < stamps[0] - self.max_extrapolation_s or t > stamps[-1] + self.max_extrapolation_s:
             return None
         if t <= stamps[-1] or len(stamps) < 2:
@@ -50,7 +50,7 @@ class WheelOnlyOdometry:
         """The wheel pose at the sweep's stamp, in ``map``; None before any wheel odometry or when the
         sweep is not after the previous one."""
         t = float(scan.stamp)
-        if self._stamps and t <= self._stamps[-1]:
+        if self._track and t <= self._track.stamps[-1]:
             return None
         W = self._wheel_at(t)
         if W is None:
@@ -58,8 +58,7 @@ class WheelOnlyOdometry:
         if self._T_map_odom is None:
             self._T_map_odom = inv(W)
         pose = self._T_map_odom @ W
-        self._stamps.append(t)
-        self._poses.append(pose)
+        self._track.append(t, pose)
         if self.T_base_lidar is not None and len(scan.points):
             self.last_points_base = transform_points(self.T_base_lidar, np.asarray(scan.points, dtype=float))
         return pose
@@ -67,16 +66,16 @@ class WheelOnlyOdometry:
     def pose_at(self, t: float) -> np.ndarray | None:
         """``T_map_base`` at t from the wheel track, within ``max_extrapolation_s`` of the registered
         sweeps; None elsewhere or before any sweep."""
-        if not self._stamps:
+        if not self._track:
             return None
         lim = self.max_extrapolation_s
-        if t < self._stamps[0] - lim or t > self._stamps[-1] + lim:
+        if t < self._track.stamps[0] - lim or t > self._track.stamps[-1] + lim:
             return None
         W = self._wheel_at(t)
         return None if W is None else self._T_map_odom @ W
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        return np.array(self._stamps), np.array(self._poses).reshape(-1, 4, 4)
+        return self._track.arrays()
 
     def floor_plane_map(self):
         """No floor estimate (wheels see none): the object store checks no label against a floor."""

@@ -173,9 +173,9 @@ class EpisodeRecorder:
 
     def _submit_ground_truth_poses(self) -> None:
         gt = self.ep.groundtruth
-        n = len(gt.base_stamps)
+        n = len(gt)
         if n > self._gt_written:
-            stamps, poses = gt.base_stamps[self._gt_written:n], gt.base_poses[self._gt_written:n]
+            stamps, poses = gt.window(self._gt_written, n)
             self._gt_written = n
             self._submit(self._write_poses, stamps, poses)
 

@@ -9,9 +9,9 @@ An episode streams into the writer as it runs::
         for msg in ep.frames():
             bag.write(msg)                                 # LidarScan | CameraFrame | WheelOdometry
             gt = ep.groundtruth                            # base_link at every physics step so far
-            for t, T_world_base in zip(gt.base_stamps[done:], gt.base_poses[done:]):
+            for t, T_world_base in zip(*gt.window(done)):
                 bag.write_ground_truth_pose(t, T_world_base)
-            done = len(gt.base_stamps)
+            done = len(gt)
 
 The bag is written under a hidden temporary name next to the target and moved
 into place only when the ``with`` block ends without an exception; on an

@@ -123,12 +123,49 @@ def test_simulate_is_deterministic_per_seed(tmp_path):
     assert (a / depth).read_bytes() != (c / depth).read_bytes()
 
 
-def test_the_ground_truth_record_keeps_every_pose_as_it_grows():
-    from sim.episode import GroundTruth
+def _random_steps(n: int, seed: int = 0):
+    from scipy.spatial.transform import Rotation
 
-    gt = GroundTruth(capacity=2)
-    poses = [np.diag([1.0, 1.0, 1.0, 1.0]) * (k + 1) for k in range(9)]
-    for k, T in enumerate(poses):
-        gt.add(0.1 * k, T)
-    assert len(gt.stamps) == 9 and gt.stamps.tolist() == [0.1 * k for k in range(9)]
-    assert np.array_equal(gt.T_world_base, np.array(poses))
+    rng = np.random.default_rng(seed)
+    stamps = np.arange(n) / 240.0
+    xyz = np.cumsum(rng.normal(0, 1e-3, (n, 3)), axis=0)
+    quat = Rotation.from_rotvec(np.cumsum(rng.normal(0, 1e-3, (n, 3)), axis=0)).as_quat()
+    return stamps, xyz, quat
+
+
+def test_the_ground_truth_record_keeps_every_pose_as_it_grows_and_spills_to_disk():
+    from sim.episode import GroundTruth
+    from stack.transforms import from_xyz_quat
+
+    stamps, xyz, quat = _random_steps(5000)
+    gt = GroundTruth(memory_rows=1024)
+    for t, x, q in zip(stamps, xyz, quat):
+        gt.add(t, tuple(x), tuple(q))
+    assert len(gt) == 5000 and gt._n_buf <= 1024  # the rest went to the temporary file
+    assert np.array_equal(gt.stamps, stamps)
+    full = np.array([from_xyz_quat(tuple(x), tuple(q)) for x, q in zip(xyz, quat)])
+    assert np.array_equal(gt.T_world_base, full)  # the matrices the episode computed, bit for bit
+    s, P = gt.window(1000, 1100)
+    assert np.array_equal(s, stamps[1000:1100]) and np.array_equal(P, full[1000:1100])
+    s, P = gt.window(len(gt) - 30)
+    assert np.array_equal(P, full[-30:])
+
+
+def test_ground_truth_lookups_are_bit_for_bit_those_of_the_whole_trajectory():
+    from sim.episode import GroundTruth
+    from stack.transforms import from_xyz_quat, interpolate_trajectory
+
+    stamps, xyz, quat = _random_steps(6000, seed=1)
+    gt = GroundTruth(memory_rows=2048)
+    for t, x, q in zip(stamps, xyz, quat):
+        gt.add(t, x, q)
+    full = np.array([from_xyz_quat(x, q) for x, q in zip(xyz, quat)])
+    rng = np.random.default_rng(2)
+    tq = np.concatenate([rng.uniform(-1.0, stamps[-1] + 1.0, 500), stamps[rng.integers(0, len(stamps), 200)],
+                         [stamps[0], stamps[-1], stamps[1023], stamps[1024], stamps[2048], -3.0, 99.0]])
+    assert np.array_equal(gt.T_world_base_at(tq), interpolate_trajectory(stamps, full, tq))
+    for t in tq[::25]:
+        assert np.array_equal(gt.T_world_base_at(float(t)), interpolate_trajectory(stamps, full, float(t)))
+    one = GroundTruth(memory_rows=1024)
+    one.add(0.5, xyz[0], quat[0])
+    assert np.array_equal(one.T_world_base_at(3.0), full[0])
