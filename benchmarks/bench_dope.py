@@ -19,21 +19,28 @@ import numpy as np
 import torch
 
 
-def render_frame():
-    from scipy.spatial.transform import Rotation  # noqa: F401
-
-    from sim.camera import default_camera_info, new_client, render_rgbd
-    from sim.objects import load_catalog, spawn_object
-
-    client, renderer = new_client("tiny")
+def build_scene(client: int) -> dict:
+    """A floor and three objects 0.8-1.4 m ahead of the origin in ``client``; the class catalogue."""
     import pybullet as p
 
+    from sim.objects import load_catalog, spawn_object
+
     cat = load_catalog()
-    info = default_camera_info()
     floor = p.createVisualShape(p.GEOM_BOX, halfExtents=[5, 5, 0.05], rgbaColor=[0.6, 0.6, 0.55, 1], physicsClientId=client)
     p.createMultiBody(0, -1, floor, [0, 0, -0.05], physicsClientId=client)
     for i, (cls, x, y) in enumerate((("E", 0.8, 0.0), ("Mustard", 1.1, 0.3), ("Cookies", 1.4, -0.35))):
         spawn_object(client, cat[cls], cat[cls].standing_pose([x, y, 0.0], np.pi + 0.3 * i))
+    return cat
+
+
+def render_frame():
+    import pybullet as p
+
+    from sim.camera import default_camera_info, new_client, render_rgbd
+
+    client, renderer = new_client("tiny")
+    cat = build_scene(client)
+    info = default_camera_info()
     T = np.eye(4)
     T[:3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)
     T[:3, 3] = [0, 0, 0.3]

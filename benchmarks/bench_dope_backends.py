@@ -96,17 +96,16 @@ POSES = ((0.0, 0.0), (0.15, 0.12), (-0.1, -0.15), (0.3, 0.05), (0.05, 0.25), (-0
 
 def render_frames(n: int):
     """``n`` (info, rgb, depth) of bench_dope.py's scene from different camera poses, and the class dims."""
-    from sim.camera import default_camera_info, new_client, render_rgbd
-    from sim.objects import load_catalog, spawn_object
     import pybullet as p
 
+    from sim.camera import default_camera_info, new_client, render_rgbd
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_dope import build_scene
+
     client, _ = new_client("tiny")
-    cat = load_catalog()
+    cat = build_scene(client)
     info = default_camera_info()
-    floor = p.createVisualShape(p.GEOM_BOX, halfExtents=[5, 5, 0.05], rgbaColor=[0.6, 0.6, 0.55, 1], physicsClientId=client)
-    p.createMultiBody(0, -1, floor, [0, 0, -0.05], physicsClientId=client)
-    for i, (cls, x, y) in enumerate((("E", 0.8, 0.0), ("Mustard", 1.1, 0.3), ("Cookies", 1.4, -0.35))):
-        spawn_object(client, cat[cls], cat[cls].standing_pose([x, y, 0.0], np.pi + 0.3 * i))
     rng = np.random.default_rng(0)
     frames = []
     for k in range(n):
