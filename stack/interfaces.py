@@ -42,7 +42,9 @@ class Odometry(Protocol):
     up, n.x + d = 0 on the floor); the object store's evidence uses it to reject labels below the
     floor. Optional: ``last_points_base``, the last sweep's points in ``base_link`` (N, 3), which
     the pipeline collects into a LiDAR map. Optional: ``on_wheel_odometry(msg)``, given every
-    :class:`~stack.messages.WheelOdometry` message in time order with the scans.
+    :class:`~stack.messages.WheelOdometry` message in time order with the scans. Optional:
+    ``last_stamp() -> float | None``, the newest registered pose's stamp (else the pipeline reads it
+    from ``trajectory()``, a copy of the whole trajectory at every sweep).
     """
 
     def process(self, scan: LidarScan) -> np.ndarray | None:

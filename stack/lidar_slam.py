@@ -389,6 +389,10 @@ class LidarOdometry:
         """(stamps (N,), T_map_base (N, 4, 4)) of every registered scan."""
         return self._track.arrays()
 
+    def last_stamp(self) -> float | None:
+        """The newest registered pose's stamp (None before any)."""
+        return float(self._track.stamps[-1]) if self._track else None
+
     def pose_at(self, t: float) -> np.ndarray | None:
         """``T_map_base`` at time t: SE(3) interpolation between scans; constant-velocity extrapolation
         up to ``max_extrapolation_s`` past either end; None when further out or before any scan."""

@@ -176,11 +176,19 @@ class DopeSlam:
         if self.loop_closer is not None:
             self.loop_closer.on_scan(self.odometry, pose)
         if self._pending:
-            stamps = self.odometry.trajectory()[0]
-            if len(stamps):
-                self._fuse_pending(upto=float(stamps[-1]))
+            last = self._last_pose_stamp()
+            if last is not None:
+                self._fuse_pending(upto=last)
         self.timing["fusion"] += time.perf_counter() - t1
         return pose
+
+    def _last_pose_stamp(self) -> float | None:
+        """The odometry's newest pose stamp (its optional ``last_stamp()``: no copy of the trajectory)."""
+        last = getattr(self.odometry, "last_stamp", None)
+        if callable(last):
+            return last()
+        stamps = self.odometry.trajectory()[0]
+        return float(stamps[-1]) if len(stamps) else None
 
     def on_image(self, frame: CameraFrame, detections: Sequence[Detection] | None = None) -> list[Detection] | None:
         """A camera image: detected (every ``detect_every``-th one), its detections wait for a pose.

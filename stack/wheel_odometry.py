@@ -77,6 +77,10 @@ class WheelOnlyOdometry:
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         return self._track.arrays()
 
+    def last_stamp(self) -> float | None:
+        """The newest registered pose's stamp (None before any)."""
+        return float(self._track.stamps[-1]) if self._track else None
+
     def floor_plane_map(self):
         """No floor estimate (wheels see none): the object store checks no label against a floor."""
         return None

@@ -56,7 +56,8 @@ class LoopClosingRun:
         if T_map_base is None or points is None:
             return
         t0 = time.perf_counter()
-        stamp = float(odom.trajectory()[0][-1])
+        last = getattr(odom, "last_stamp", None)
+        stamp = float(last() if callable(last) else odom.trajectory()[0][-1])
         self.closer.add_scan(stamp, T_map_base, points)
         if self._scans % self._map_every == 0:
             pts = points[::4].astype(np.float32)
