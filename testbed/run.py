@@ -341,7 +341,8 @@ def _map_png(path, ep, T_world_map, poses, map_points, labels, report) -> None:
         pts = pts[(pts[:, 2] > 0.05) & (pts[:, 2] < 2.0)]
         ax.scatter(pts[:, 0], pts[:, 1], s=0.2, c="0.55", label="LiDAR map")
     est = (T_world_map @ poses)[:, :2, 3]
-    gt = ep.groundtruth.rows()[:, 1:3]  # x, y of base_link at every physics step
+    truth = ep.groundtruth  # the simulator's record (rows: t, x, y, ...), or a bag's poses (replay)
+    gt = truth.rows()[:, 1:3] if hasattr(truth, "rows") else np.asarray(truth.T_world_base)[:, :2, 3]
     ax.plot(gt[:, 0], gt[:, 1], "g-", lw=1, label="ground-truth path")
     ax.plot(est[:, 0], est[:, 1], "b--", lw=1, label="LiDAR odometry")
     for row in labels:
