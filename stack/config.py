@@ -82,6 +82,11 @@ class DetectorConfig(BaseModel):
     colour_margin: float = Field(0.0, ge=0, description="another class must fit better by more than this")
     min_colour_brightness: float = Field(20.0, ge=0, description="darker silhouettes (mean 0-255) skip the colour check")
     window_min_pixels: int = Field(40, ge=0, description="depth input: windows with fewer pixels above the floor are skipped")
+    shape_check: bool = Field(True, description="depth input: FPR also fails a detection whose object another class's "
+                              "cuboid explains clearly better (its outline in the depth image)")
+    shape_min_residual_m: float = Field(0.006, ge=0, description="shape check: the detected class's depth residual (m) "
+                                        "must exceed this to fail")
+    shape_ratio: float = Field(1.5, ge=1, description="shape check: ... and this many times the best other class's")
     depth_windows: list[tuple[float, float]] | None = Field(
         None, description="depth input: [[near, far], ...] m (null: sliding 0.3-1.8 m, 0.3 m wide, 0.1 m overlap)")
 
@@ -94,7 +99,9 @@ class DetectorConfig(BaseModel):
                 "depth_windows": [tuple(w) for w in self.depth_windows] if self.depth_windows else None,
                 "depth_refine": self.depth_refine, "depth_check": self.depth_check,
                 "colour_check": self.colour_check, "colour": self.colour_model, "colour_margin": self.colour_margin,
-                "min_colour_brightness": self.min_colour_brightness, "window_min_pixels": self.window_min_pixels}
+                "min_colour_brightness": self.min_colour_brightness, "window_min_pixels": self.window_min_pixels,
+                "shape_check": self.shape_check, "shape_min_residual_m": self.shape_min_residual_m,
+                "shape_ratio": self.shape_ratio}
 
 
 class StoreConfig(BaseModel):

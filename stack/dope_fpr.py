@@ -31,6 +31,12 @@ Pipeline (paper sections 3.1 and 3.4):
    (within ``colour_margin``) or is beyond that class's threshold. DOPE's typical false positive in the
    bundled scenes is a wrong class on a right object (an E on the Cookies box, a Mustard on the orange
    juice): depth supports such a cuboid, but its colours belong to the other class.
+7. Shape check (beyond the paper; depth input): in darkness shape is the only class cue left. The
+   object's outline seen from above (its front surface's depth per image column, between its image
+   edges) is explained by every class's cuboid footprint in turn; a detection fails FPR when its own
+   class's residual is above ``shape_min_residual_m`` and ``shape_ratio`` times another class's
+   (:mod:`stack.dope.shape_check`). The depth network's typical error is such a wrong class on a right
+   object.
 """
 from __future__ import annotations
 
@@ -51,6 +57,7 @@ from scipy.ndimage import maximum_filter
 from stack.dope.colour_names import ColourModel, colour_names
 from stack.dope.depth_refine import refine_translation
 from stack.dope.depth_window import preprocess_depth, sliding_windows, window_content
+from stack.dope.shape_check import shape_verdict
 from stack.dope.net import N_AFFINITY, N_BELIEF, STRIDE, DopeNet, load_weights
 from stack import metrics
 from stack.config import torch_threads
@@ -383,6 +390,10 @@ class DopeDetector:
     worse than that class's threshold, fails FPR (``extra['fpr_rejected_by'] = 'colour'``); ``colour``:
     a ColourModel or JSON path (None = ``stack/weights/hog_colour.json``). Frames darker than
     ``min_colour_brightness`` (mean 0-255 in the silhouette) skip the check: colour says nothing there.
+    shape_check (depth input): a detection whose object's depth another class's cuboid explains
+    clearly better (own residual above ``shape_min_residual_m`` metres and ``shape_ratio`` times the
+    best other class's, :func:`stack.dope.shape_check.shape_verdict`) fails FPR when FPR is on
+    (``extra['fpr_rejected_by'] = 'shape'``); the verdict is in ``extra['shape']``.
     """
 
     def __init__(self, weights=None, input: str = "rgb", stages: int = 6, fpr: bool = True, dims: dict | None = None,
@@ -391,7 +402,8 @@ class DopeDetector:
                  depth_windows=None, device: str | None = None, threads: int | None = None,
                  depth_refine: bool = True, depth_check: bool = True, colour_check: bool = True,
                  colour=None, colour_margin: float = 0.0, min_colour_brightness: float = 20.0,
-                 window_min_pixels: int = WINDOW_MIN_PIXELS):
+                 window_min_pixels: int = WINDOW_MIN_PIXELS, shape_check: bool = True,
+                 shape_min_residual_m: float = 0.006, shape_ratio: float = 1.5):
         if input not in ("rgb", "depth"):
             raise ValueError(f"input must be 'rgb' or 'depth', got {input!r}")
         if not dims:
@@ -425,6 +437,9 @@ class DopeDetector:
         self.colour_margin = float(colour_margin)
         self.min_colour_brightness = float(min_colour_brightness)
         self.colour: ColourModel | None = None
+        self.shape_check = bool(shape_check) and input == "depth"
+        self.shape_min_residual_m = float(shape_min_residual_m)
+        self.shape_ratio = float(shape_ratio)
         if self.colour_check:
             self.colour = colour if isinstance(colour, ColourModel) else ColourModel.load(
                 colour if colour is not None else default_colour_model_path())
@@ -582,6 +597,22 @@ class DopeDetector:
                 det.fpr_pass = False
                 det.extra["fpr_rejected_by"] = "colour"
 
+    def _shape_check(self, frame: CameraFrame, dets: list[Detection]) -> None:
+        """Records ``extra['shape']`` for every detection still passing FPR; with FPR on, a failure fails FPR."""
+        if not self.shape_check or frame.depth_m is None:
+            return
+        for det in dets:
+            if not det.fpr_pass:
+                continue
+            v = shape_verdict(frame.depth_m, frame.info.K, det.T_cam_obj, self.dims, det.cls,
+                              self.shape_min_residual_m, self.shape_ratio)
+            if v is None:
+                continue
+            det.extra["shape"] = v.as_dict()
+            if not v.ok and self.fpr:
+                det.fpr_pass = False
+                det.extra["fpr_rejected_by"] = "shape"
+
     def detect_stages(self, frame: CameraFrame, stage_counts=None) -> dict[int, list[Detection]]:
         """Detections for every stage count (default 1..configured stages) from one forward pass."""
         counts = sorted(stage_counts or range(1, self.stages + 1))
@@ -599,11 +630,12 @@ class DopeDetector:
         return result
 
     def _fit_and_filter(self, frame: CameraFrame, dets: list[Detection], n_inputs: int) -> list[Detection]:
-        """Depth fit, depth windows' range check, one detection per (class, place), colour check."""
+        """Depth fit, depth windows' range check, one detection per (class, place), colour and shape checks."""
         self._depth_refine(frame, dets)
         dets = self._window_filter(dets)
         dets = self._dedupe(dets) if n_inputs > 1 else dets
         self._colour_check(frame, dets)
+        self._shape_check(frame, dets)
         return dets
 
     def detect(self, frame: CameraFrame) -> list[Detection]:
