@@ -40,8 +40,9 @@ from stack.retire import RETIRED, revive
 from stack.transforms import from_xyz_quat, to_xyz_quat
 
 COLUMNS = ["id", "class", "x", "y", "z", "qx", "qy", "qz", "qw", "size_x", "size_y", "size_z",
-           "first_seen", "last_seen", "observations", "score", "edited", "status", "reason"]
-OPTIONAL_COLUMNS = {"status": LABEL, "reason": ""}  # files written before candidates existed: all labels
+           "first_seen", "last_seen", "observations", "score", "edited", "status", "reason", "views"]
+# files written before candidates existed: all labels; before views were counted: none counted
+OPTIONAL_COLUMNS = {"status": LABEL, "reason": "", "views": 0}
 SHEET = "objects"
 JSON_FORMAT = "dopeslam-object-store"
 QUAT_NORM_TOLERANCE = 0.01  # hand-typed quaternions (0.707, 0, 0, 0.707) are accepted and normalised
@@ -298,6 +299,8 @@ class MapObject:
     past: list[Observation] = field(default_factory=list)  # observations before it was retired and seen again
     sightings: list[Observation] = field(default_factory=list)  # seen while retired, not yet enough to revive it
     revive_after: int = 3  # sightings of a retired object that bring it back (RetireConfig.revive_sightings)
+    views: int = 0  # detected images that showed its place (``stack.evidence.count_views``)
+    view_range_m: float = math.nan  # the furthest FPR-passing observation's range (nan: not yet known)
 
     @property
     def is_label(self) -> bool:
@@ -311,7 +314,7 @@ class MapObject:
         (x, y, z), (qx, qy, qz, qw), (sx, sy, sz) = self.xyz, self.quat_xyzw, self.size
         values = [self.id, self.cls, x, y, z, qx, qy, qz, qw, sx, sy, sz,
                   self.first_seen, self.last_seen, self.observations, self.score, self.edited, self.status,
-                  self.reason]
+                  self.reason, self.views]
         return {c: (v.item() if isinstance(v, np.generic) else v) for c, v in zip(COLUMNS, values)}
 
 
@@ -418,6 +421,8 @@ class ObjectStore:
         if len(obj.history) > self.history_limit:
             obj.history = thin_history(obj.history, self.history_limit // 2, self.history_limit // 4)
         obj.observations += obs.weight
+        if obs.fpr_pass and math.isfinite(obs.range_m) and not obs.range_m <= obj.view_range_m:
+            obj.view_range_m = float(obs.range_m)
         obj.first_seen, obj.last_seen = min(obj.first_seen, obs.stamp), max(obj.last_seen, obs.stamp)
         if not obj.edited:
             label = label_of(obj.history, self.policy)
@@ -631,11 +636,12 @@ def _parse_row(path: Path, row: int, v: Mapping, classes: set[str] | None) -> Ma
         raise ObjectStoreError(path, row, "status", f"expected {LABEL!r}, {CANDIDATE!r} or {RETIRED!r}, "
                                f"got {v.get('status')!r}")
     reason = v.get("reason")
+    views = 0 if _empty(v.get("views")) else integer("views")
     return MapObject(
         id=integer("id"), cls=cls, xyz=np.array([number(c) for c in ("x", "y", "z")]), quat_xyzw=quat / norm,
         size=size, first_seen=first_seen, last_seen=last_seen, observations=integer("observations"),
         score=number("score", allow_empty=True), edited=_flag(path, row, v["edited"]), status=status,
-        reason="" if _empty(reason) else str(reason))
+        reason="" if _empty(reason) else str(reason), views=views)
 
 
 def _flag(path: Path, row: int, x) -> bool:

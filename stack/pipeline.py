@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from stack.evidence import carry_views, count_views
 from stack.fusion import fuse
 from stack.interfaces import Detector, LoopCloser, Odometry
 from stack.lidar_slam import WheelOdometryTrack
@@ -84,7 +85,7 @@ class _Waiting:
     index: int
     stamp: float
     detections: list[Detection]
-    frame: CameraFrame | None = None  # kept only for the retirement check (its depth image)
+    frame: CameraFrame | None = None  # kept for the views and the retirement check (its pose, intrinsics, depth)
 
 
 class DopeSlam:
@@ -100,14 +101,15 @@ class DopeSlam:
     called with each :class:`FusedImage` when it is fused, in image order. ``map_objects``: False
     keeps the fused observations out of the object store (a harness that labels on its own).
     ``retire``: retire map objects whose place the depth images show empty (:mod:`stack.retire`);
-    None: never.
+    None: never. ``count_views``: count, per map object, the detected images that showed its place
+    (:func:`stack.evidence.count_views`; the evidence gate's detection rate).
     """
 
     def __init__(self, odometry: Odometry, detector: Detector | None, T_base_cam: np.ndarray,
                  dims: Mapping[str, Sequence[float]], policy: str = "robust-mean",
                  loop_closer: LoopCloser | None = None, detect_every: int = 1, keep_observations: bool = False,
                  on_fused_image: Callable[[FusedImage], None] | None = None, map_objects: bool = True,
-                 retire: RetireConfig | None = None):
+                 retire: RetireConfig | None = None, count_views: bool = True):
         if detector is not None and not isinstance(detector, Detector):
             raise TypeError(f"detector {type(detector).__name__} has no detect(frame) method")
         if not isinstance(odometry, Odometry):
@@ -125,6 +127,7 @@ class DopeSlam:
         self.on_fused_image = on_fused_image
         self.map_objects = map_objects
         self.retirement = Retirement(retire) if retire is not None else None
+        self.count_views = bool(count_views)
         self.store = ObjectStore(dims=self.dims, policy=policy)
         self.wheel = WheelOdometryTrack()
         self._odometry_wheel = getattr(odometry, "on_wheel_odometry", None)
@@ -209,8 +212,9 @@ class DopeSlam:
         else:
             self.images += 1
             detections = list(detections)
+        keep_frame = self.map_objects and (self.retirement is not None or self.count_views)
         self._pending.append(_Waiting(self.detected_images, float(frame.stamp), detections,
-                                      frame if self.retirement is not None else None))
+                                      frame if keep_frame else None))
         self.detected_images += 1
         return detections
 
@@ -248,6 +252,7 @@ class DopeSlam:
                                                 self.odometry.pose_at, self.T_base_cam)
                 if self.retirement is not None:  # what was seen empty stays retired on the new trajectory
                     carry_over(self.store, store, self.retirement.config.revive_sightings)
+                carry_views(self.store, store)
             map_points = self.loop_closer.map_points()
         floor = getattr(self.odometry, "floor_plane_map", None)
         store.floor = floor() if callable(floor) else None
@@ -293,10 +298,13 @@ class DopeSlam:
                 self.loop_closer.on_fused(det)
             if self.keep_observations:
                 self._observations.append(obs)
-        if self.retirement is not None and img.frame is not None and self.map_objects:
+        if img.frame is not None and self.map_objects:
             T_map_base = pose_at(img.stamp)
             if T_map_base is not None:
-                self.retirement.view(self.store, T_map_base @ self.T_base_cam, img.frame.info, img.frame.depth_m,
-                                     seen, img.stamp)
+                T_map_cam = T_map_base @ self.T_base_cam
+                if self.count_views:
+                    count_views(self.store, T_map_cam, img.frame.info, img.frame.depth_m, seen)
+                if self.retirement is not None:
+                    self.retirement.view(self.store, T_map_cam, img.frame.info, img.frame.depth_m, seen, img.stamp)
         if self.on_fused_image is not None:
             self.on_fused_image(FusedImage(img.index, img.stamp, pose_at(img.stamp), img.detections, fused))

@@ -73,6 +73,14 @@ def classify(xyz_map: np.ndarray, size: np.ndarray, T_map_cam: np.ndarray, info:
     m = config.margin_px
     if not (m <= u <= info.width - 1 - m and m <= v <= info.height - 1 - m):
         return OUT_OF_VIEW
+    return depth_verdict(u, v, z, size, info, depth_m, config.tolerance_m)
+
+
+def depth_verdict(u: float, v: float, z: float, size, info: CameraInfo, depth_m: np.ndarray | None,
+                  tolerance_m: float) -> str:
+    """What the depth image shows about a cuboid of ``size`` whose centroid projects to pixel (u, v) at
+    depth ``z`` (the camera's intrinsics ``info``; the depth image may be smaller): ``present``,
+    ``occluded``, ``empty`` or ``no_depth``."""
     if depth_m is None:
         return NO_DEPTH
     scale = depth_m.shape[1] / info.width
@@ -83,8 +91,8 @@ def classify(xyz_map: np.ndarray, size: np.ndarray, T_map_cam: np.ndarray, info:
     if valid.size < max(3, win.size // 4):
         return NO_DEPTH
     extent = 0.5 * float(np.linalg.norm(size))  # the cuboid's half diagonal: its surface is within this of z
-    front = valid < z - extent - config.tolerance_m
-    back = valid > z + extent + config.tolerance_m
+    front = valid < z - extent - tolerance_m
+    back = valid > z + extent + tolerance_m
     if 1.0 - front.mean() - back.mean() >= PRESENT_SHARE:
         return PRESENT  # something at the object's depth: no evidence against it
     if front.mean() >= 0.5:

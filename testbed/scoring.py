@@ -122,7 +122,7 @@ def rescore_run(run_dir, evidence=None) -> dict:
     from pathlib import Path
     from types import SimpleNamespace
 
-    from stack.evidence import EvidenceConfig
+    from stack.evidence import EvidenceConfig, carry_views
     from stack.metrics import read_tum
     from stack.object_store import ObjectStore, ObjectStoreError
 
@@ -149,6 +149,7 @@ def rescore_run(run_dir, evidence=None) -> dict:
                         evidence=evidence or EvidenceConfig())
     for obs in sorted((h for o in saved for h in o.history), key=lambda h: h.stamp):
         store.add(obs)
+    carry_views(saved, store)  # the images that showed each place, as the run counted them
     store.floor = floor
     store.publish()
     _, T_world_base = read_tum(gt_path)
