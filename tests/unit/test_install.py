@@ -173,3 +173,17 @@ def test_gtsam_is_an_extra_that_loop_closure_names():
     from stack.loops.closure import GTSAM_MISSING
 
     assert "pip install 'dopeslam-testbed[loops]'" in GTSAM_MISSING
+
+
+def test_loops_caps_numpy_where_only_gtsam_4_2_has_a_wheel():
+    """gtsam 4.2, the newest release with a wheel for Python 3.10, is built against NumPy 1: with NumPy 2
+    ``gtsam.Pose3(np.eye(4))`` segfaults. gtsam 4.3 (wheels for 3.11+) is built against NumPy 2."""
+    reqs = [Requirement(r) for r in PROJECT["optional-dependencies"]["loops"]]
+
+    def numpy_specs(python):
+        env = {"python_version": python, "extra": "loops"}
+        return [r.specifier for r in reqs if r.name == "numpy" and (r.marker is None or r.marker.evaluate(env))]
+
+    assert any(not s.contains("2.0.0") for s in numpy_specs("3.10"))
+    assert all(s.contains("2.0.0") for s in numpy_specs("3.11"))
+    assert _ours()["numpy"].specifier.contains("1.26.4")  # the core allows what the cap leaves
