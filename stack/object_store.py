@@ -32,7 +32,7 @@ import pandas as pd
 from openpyxl.utils.exceptions import InvalidFileException
 from scipy.spatial.transform import Rotation
 
-from stack.evidence import CANDIDATE, LABEL, EvidenceConfig, assess
+from stack.evidence import CANDIDATE, LABEL, EvidenceConfig, assess, detected_range
 from stack.errors import DopeSlamError
 from stack.io import atomic_path, write_json
 from stack.messages import Detection
@@ -421,8 +421,8 @@ class ObjectStore:
         if len(obj.history) > self.history_limit:
             obj.history = thin_history(obj.history, self.history_limit // 2, self.history_limit // 4)
         obj.observations += obs.weight
-        if obs.fpr_pass and math.isfinite(obs.range_m) and not obs.range_m <= obj.view_range_m:
-            obj.view_range_m = float(obs.range_m)
+        if obs.fpr_pass and math.isfinite(obs.range_m):  # (a loaded object's history counts too)
+            obj.view_range_m = max(detected_range(obj), float(obs.range_m))
         obj.first_seen, obj.last_seen = min(obj.first_seen, obs.stamp), max(obj.last_seen, obs.stamp)
         if not obj.edited:
             label = label_of(obj.history, self.policy)
