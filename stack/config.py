@@ -89,6 +89,8 @@ class DetectorConfig(BaseModel):
     shape_ratio: float = Field(1.5, ge=1, description="shape check: ... and this many times the best other class's")
     depth_windows: list[tuple[float, float]] | None = Field(
         None, description="depth input: [[near, far], ...] m (null: sliding 0.3-1.8 m, 0.3 m wide, 0.1 m overlap)")
+    channels_last: bool = Field(True, description="run the network in channels-last memory order (about 15 % faster "
+                                "on a CPU; the maps differ in the last float bits)")
 
     def dope_kwargs(self) -> dict:
         """Keyword arguments of :class:`stack.dope_fpr.DopeDetector` (``dims`` and ``threads`` aside)."""
@@ -100,6 +102,7 @@ class DetectorConfig(BaseModel):
                 "depth_refine": self.depth_refine, "depth_check": self.depth_check,
                 "colour_check": self.colour_check, "colour": self.colour_model, "colour_margin": self.colour_margin,
                 "min_colour_brightness": self.min_colour_brightness, "window_min_pixels": self.window_min_pixels,
+                "channels_last": self.channels_last,
                 "shape_check": self.shape_check, "shape_min_residual_m": self.shape_min_residual_m,
                 "shape_ratio": self.shape_ratio}
 
