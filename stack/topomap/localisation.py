@@ -112,7 +112,10 @@ def _essential_pose(K: np.ndarray, ref: Features, feats: Features, cfg: MonoConf
     a = np.ascontiguousarray(ref.uv[i], dtype=np.float64)
     b = np.ascontiguousarray(feats.uv[j], dtype=np.float64)
     K = np.asarray(K, dtype=np.float64)
-    E, mask = cv2.findEssentialMat(a, b, K, cv2.RANSAC, 0.999, 1.0)
+    try:
+        E, mask = cv2.findEssentialMat(a, b, K, cv2.RANSAC, 0.999, 1.0)
+    except cv2.error:  # a degenerate sample set (the five-point solver's polynomial vanishes): no fix
+        return None
     if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < min_inliers:
         return None
     n, R, t, inl = cv2.recoverPose(E, a, b, K, mask=mask.copy())

@@ -95,3 +95,16 @@ def test_topomap_commands_parse_and_bad_input_is_one_line_exit_2(tmp_path, capsy
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and err[0].startswith("dopeslam navigate-batch: --seeds")
     assert "missing.json" in err[1] and "bad.json" in err[2]
+
+
+def test_relative_fix_on_an_unmoved_image_is_no_fix():
+    """The robot standing where a route image was taken: the same pixels in both images make OpenCV's
+    five-point solver fail (its polynomial vanishes); that is no fix, not an error."""
+    from stack.topomap.localisation import relative_pose_up_to_scale
+    from stack.topomap.mono_pose import Features
+
+    rng = np.random.default_rng(0)
+    desc = rng.normal(size=(60, 128)).astype(np.float32)
+    feats = Features(uv=rng.uniform((0, 0), (640, 480), (60, 2)), desc=desc / np.linalg.norm(desc, axis=1, keepdims=True))
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    assert relative_pose_up_to_scale(K, feats, feats) is None
