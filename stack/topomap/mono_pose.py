@@ -66,10 +66,10 @@ class MonoConfig:
     max_descriptor_distance: float = 0.4  # L2 between L2-normalised SIFT descriptors
     min_match_ratio: float = 0.2  # matched / detected in the key frame; below it the frame is discarded
     inlier_px: float = 2.0
-    # Sampson distance (pixels) for an essential-matrix inlier (TRPE and the initialisation). OpenCV's
-    # five-point RANSAC at 2 px let TRPE fail in 12 of 30 seeded runs on experiment3_columns and 20 of 30
-    # on shelf_corridor; at 1 px, 2 and 5 (docs/topological_map.md).
-    essential_px: float = 1.0
+    # Sampson distance (pixels) for an inlier of TRPE's essential matrix (the initialisation's keeps
+    # inlier_px). OpenCV's five-point RANSAC at 2 px let TRPE fail in 12 of 30 seeded runs on
+    # experiment3_columns and 20 of 30 on shelf_corridor; at 1 px, 2 and 5 (docs/topological_map.md).
+    trpe_essential_px: float = 1.0
     confidence: float = 0.99
     max_iterations: int = 1000
     min_iterations: int = 20
@@ -403,14 +403,15 @@ def _finish(K, best, X, uv, iterations, cfg) -> PoseEstimate | None:
 
 
 def essential_ransac(K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, rng: np.random.Generator,
-                     cfg: MonoConfig = MonoConfig()):
+                     cfg: MonoConfig = MonoConfig(), threshold_px: float | None = None):
     """Best essential matrix in RANSAC (OpenCV's ``findEssentialMat``: five-point hypotheses, MSAC score
-    on the Sampson error with threshold ``cfg.essential_px``, local optimisation and a least-squares
-    polish on the inliers, seeded from ``rng``); returns (E, inlier mask) or None."""
+    on the Sampson error with threshold ``threshold_px`` (default ``cfg.inlier_px``), local optimisation
+    and a least-squares polish on the inliers, seeded from ``rng``); returns (E, inlier mask) or None."""
     if len(uv1) < 8:
         return None
     p = cv2.UsacParams()
-    p.confidence, p.maxIterations, p.threshold = cfg.confidence, cfg.max_iterations, cfg.essential_px
+    p.confidence, p.maxIterations = cfg.confidence, cfg.max_iterations
+    p.threshold = cfg.inlier_px if threshold_px is None else threshold_px
     p.randomGeneratorState = int(rng.integers(2**31 - 1))
     p.sampler, p.score = cv2.SAMPLING_UNIFORM, cv2.SCORE_METHOD_MSAC
     p.loMethod, p.loIterations, p.loSampleSize = cv2.LOCAL_OPTIM_GC, 10, 14
@@ -444,7 +445,7 @@ def trpe(K: np.ndarray, X_kf: np.ndarray, uv_kf3: np.ndarray, uv_cur3: np.ndarra
          uv_cur_all: np.ndarray, rng: np.random.Generator, cfg: MonoConfig = MonoConfig()) -> PoseEstimate | None:
     """Two-RANSAC pose (TRPE, Wu et al.): essential matrix from all 2D-2D matches, then the translation
     length from single 3D points."""
-    res = essential_ransac(K, uv_kf_all, uv_cur_all, rng, cfg)
+    res = essential_ransac(K, uv_kf_all, uv_cur_all, rng, cfg, cfg.trpe_essential_px)
     if res is None or len(X_kf) < 1:
         return None
     E, inl_e = res

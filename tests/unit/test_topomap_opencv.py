@@ -106,16 +106,14 @@ def test_essential_pose_at_least_as_good_as_the_reference():
     """30 scenes (0.5 px noise, 30 % outliers): median rotation and translation-direction errors
     against the truth no worse than the reference's by 0.1 deg and 0.5 deg, the true matches kept and
     the outliers let in within 2 points of the reference's rates (measured: reference 0.30 deg,
-    1.9 deg, 96 %, 8.3 %; OpenCV 0.07 deg, 0.45 deg, 100 %, 8.2 %). Both at the same 2 px threshold: the
-    product's default for the essential matrix is 1 px, measured on the scenario streams."""
-    same = MonoConfig(essential_px=MonoConfig().inlier_px)
+    1.9 deg, 96 %, 8.3 %; OpenCV 0.07 deg, 0.45 deg, 100 %, 8.2 %)."""
     ref, new = [], []
     for seed in range(30):
         X, R, t, uv1, uv2, bad = scene(seed)
         t_dir = t / np.linalg.norm(t)
         for out, (fe, fp) in ((ref, (essential_reference, pose_reference)),
                               (new, (essential_ransac, pose_from_essential))):
-            E, inl = fe(K, uv1, uv2, np.random.default_rng(seed), same)
+            E, inl = fe(K, uv1, uv2, np.random.default_rng(seed))
             Rm, tm, _ = fp(K, E, uv1[inl], uv2[inl])
             out.append((angle_deg(R, Rm), np.degrees(np.arccos(np.clip(tm @ t_dir, -1, 1))),
                         inl[~bad].mean(), inl[bad].mean()))
@@ -139,3 +137,18 @@ def test_trpe_with_the_opencv_essential_matrix():
     X, R, t, uv1, uv2, bad = scene(8, outliers=0.2)
     est = trpe(K, X, uv1, uv2, uv1, uv2, np.random.default_rng(0))
     assert est is not None and np.linalg.norm(est.t - t) < 0.02 and angle_deg(R, est.R) < 0.2
+
+
+def test_trpe_takes_its_own_essential_threshold(monkeypatch):
+    """TRPE's essential matrix uses ``trpe_essential_px``; the initialisation's keeps ``inlier_px``."""
+    import stack.topomap.mono_pose as mp
+
+    seen = []
+    real = mp.essential_ransac
+    monkeypatch.setattr(mp, "essential_ransac", lambda *a: seen.append(a[5] if len(a) > 5 else None) or real(*a))
+    X, R, t, uv1, uv2, bad = scene(8, outliers=0.2)
+    trpe(K, X, uv1, uv2, uv1, uv2, np.random.default_rng(0), MonoConfig(trpe_essential_px=0.7))
+    assert seen == [0.7]
+    _, inl_1 = real(K, uv1, uv2, np.random.default_rng(0), MonoConfig(), 1.0)
+    _, inl_2 = real(K, uv1, uv2, np.random.default_rng(0), MonoConfig())
+    assert inl_1.sum() < inl_2.sum()  # the default threshold is inlier_px (2 px): more inliers than 1 px
