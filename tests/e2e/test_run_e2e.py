@@ -54,3 +54,9 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys)
     for name in ("map.png", "estimate_tum.txt", "groundtruth_tum.txt", "labels.json"):
         assert (out / name).stat().st_size > 0
     assert "precision 100 %" in capsys.readouterr().out
+    # the detector ran in a thread ahead of the pipeline; in the message loop it gives the same bytes
+    seq = tmp_path / "sequential"
+    assert main(["run", str(short_scenario), "--out", str(seq), "--seed", "3", "--sequential"]) == 0
+    for name in ("labels.json", "estimate_tum.txt"):
+        assert (seq / name).read_bytes() == (out / name).read_bytes(), name
+    assert json.loads((seq / "report.json").read_text())["detection"]["predictions"] == report["detection"]["predictions"]

@@ -1,0 +1,48 @@
+"""The live run's detector thread (``testbed.run._Ahead``): messages come out in the simulator's order,
+each image with the detections a call in the loop would have given, every ``every``-th image detected."""
+import threading
+
+import numpy as np
+import pytest
+
+from stack.messages import CameraFrame, CameraInfo, LidarScan
+from testbed.run import _Ahead
+
+
+class CountingDetector:
+    """Detections that name the image they came from, and the threads that ran them."""
+
+    def __init__(self):
+        self.threads = set()
+
+    def detect(self, frame):
+        self.threads.add(threading.current_thread().name)
+        return [("det", frame.stamp)]
+
+
+def _messages(n=10):
+    info = CameraInfo(width=4, height=3, K=np.eye(3))
+    for i in range(n):
+        yield LidarScan(stamp=i * 0.1, points=np.zeros((1, 3)), times_s=np.zeros(1))
+        yield CameraFrame(stamp=i * 0.1 + 0.05, info=info, rgb=np.zeros((3, 4, 3), np.uint8))
+
+
+@pytest.mark.parametrize("every", [1, 3])
+def test_order_and_detections_as_in_the_loop(every):
+    det = CountingDetector()
+    out = list(_Ahead(_messages(), det, every, images_ahead=2))
+    assert [type(m).__name__ for m, _, _ in out] == [type(m).__name__ for m in _messages()]
+    images = [(m, d) for m, d, _ in out if isinstance(m, CameraFrame)]
+    for i, (m, d) in enumerate(images):
+        assert d == ([("det", m.stamp)] if i % every == 0 else None)
+    assert all(d is None for m, d, _ in out if not isinstance(m, CameraFrame))
+    assert det.threads and all(t.startswith("run-detection") for t in det.threads)
+
+
+def test_an_error_in_the_detector_reaches_the_loop():
+    class Broken:
+        def detect(self, frame):
+            raise RuntimeError("weights gone")
+
+    with pytest.raises(RuntimeError, match="weights gone"):
+        list(_Ahead(_messages(), Broken()))
