@@ -103,7 +103,10 @@ class RenderWorker:
         self._shm = shared_memory.SharedMemory(create=True, size=sum(self._sizes))
         reply_r, reply_w = os.pipe()
         cmd = [sys.executable, "-c", "from sim.render import _render_worker_main; _render_worker_main()", str(reply_w)]
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, pass_fds=(reply_w,))
+        env = dict(os.environ)  # the child imports this package from where the parent found it
+        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        env["PYTHONPATH"] = os.pathsep.join(x for x in (root, env.get("PYTHONPATH", "")) if x)
+        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, pass_fds=(reply_w,), env=env)
         os.close(reply_w)
         self._replies = os.fdopen(reply_r, "rb", buffering=0)
         setup = {"scenario": scenario.model_dump(mode="json", by_alias=True), "width": W, "height": H,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -109,16 +110,32 @@ def score_trajectory(stamps, T_map_base, ep, T_world_map) -> dict:
             "rpe_trans_pct": r.trans_pct, "rpe_rot_deg_per_m": r.rot_deg_per_m, "poses": int(len(stamps))}
 
 
-def make_detector(input_mode: str, stages: int, fpr: bool, weights=None, config=None):
+def make_detector(input_mode: str, stages: int, fpr: bool, weights=None, config=None, threads: int | None = None):
     """DOPE + FPR for the simulator's classes; ``config`` (a ``stack.config.DetectorConfig``), when
-    given, sets everything (the other arguments are then ignored)."""
+    given, sets everything (the other arguments are then ignored). ``threads``: torch threads when
+    ``DOPESLAM_TORCH_THREADS`` is unset (None: torch's default)."""
     from sim.objects import load_catalog
+    from stack.config import torch_threads
     from stack.dope_fpr import DopeDetector
 
     dims = {c: s.dims for c, s in load_catalog().items()}
+    threads = torch_threads() or threads
     if config is not None:
-        return DopeDetector(dims=dims, **config.dope_kwargs())
-    return DopeDetector(weights=weights, input=input_mode, stages=stages, fpr=fpr, dims=dims)
+        return DopeDetector(dims=dims, threads=threads, **config.dope_kwargs())
+    return DopeDetector(weights=weights, input=input_mode, stages=stages, fpr=fpr, dims=dims, threads=threads)
+
+
+def ahead_settings(sequential: bool, detector) -> tuple[bool, bool | None]:
+    """Whether ``run_episode`` may run ``detector`` ahead of the pipeline, and its render worker then.
+
+    Ahead, three things share the two cores of the reference machine: the simulator with the stack's
+    odometry and fusion, the camera's renderer in a second process (``sim.render.RenderWorker``) and the
+    detector in its thread with one torch thread. On two idle cores that took the default episode from
+    132 s (sequential, torch's two threads, no render worker) to 117 s with the same bytes out
+    (docs/speed.md). The render worker: ``DOPESLAM_RENDER_WORKER`` when set, else on when ahead."""
+    ahead = not sequential and not callable(getattr(detector, "bind_episode", None))
+    worker = os.environ.get("DOPESLAM_RENDER_WORKER", "").strip()
+    return ahead, (worker == "1") if worker else (True if ahead else None)
 
 
 DOPE_DETECTOR = "stack.dope_fpr:DopeDetector"
@@ -229,8 +246,10 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     ``RetireConfig``; or False); see ``testbed/dynamic.py``. ``profile``: ``full`` or ``fast``
     (``testbed.settings.profile_sensors``; None: ``config``'s ``run.profile``, else ``full``).
     ``sequential``: run the detector in the message loop; by default it runs in a thread a few images
-    ahead of the pipeline (the same results, less wall time), except in scenarios with events and with
-    a detector bound to the episode, whose truth must be read at the image's own time."""
+    ahead of the pipeline, with the camera rendered in a second process and, for the DOPE detector
+    made here, one torch thread (:func:`ahead_settings`; the same results, less wall time), except in
+    scenarios with events and with a detector bound to the episode, whose truth must be read at the
+    image's own time."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
@@ -243,23 +262,25 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         if retire is True:
             retire = config.retire.settings() or False
         _check_config(config)
-    detector = detector or make_detector(input_mode, stages, fpr, weights, None if config is None else config.detector)
+    from sim.scenario import Scenario, load_scenario
+
+    scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    ahead_wanted, render_worker = ahead_settings(sequential or bool(scenario.events), detector)
+    detector = detector or make_detector(input_mode, stages, fpr, weights, None if config is None else config.detector,
+                                         threads=1 if ahead_wanted else None)
     dims = {c: s.dims for c, s in load_catalog().items()}
     if profile is None:
         profile = getattr(getattr(config, "run", None), "profile", "full")
     camera_rate, segmentation = None, True
     if profile != "full":
-        from sim.scenario import Scenario, load_scenario
         from testbed.settings import profile_sensors
 
-        sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         needs = bag_writer is not None or callable(getattr(detector, "bind_episode", None)) \
-            or any(e.kind == "walk" for e in sc.events)
-        camera_rate, segmentation = profile_sensors(profile, sc.sensors.camera_rate, needs)
-        scenario = sc
+            or any(e.kind == "walk" for e in scenario.events)
+        camera_rate, segmentation = profile_sensors(profile, scenario.sensors.camera_rate, needs)
     wall0 = time.perf_counter()
     with Episode(scenario, seed=seed, duration=duration, light=light, camera_rate=camera_rate,
-                 segmentation=segmentation) as ep:
+                 segmentation=segmentation, render_worker=render_worker) as ep:
         recorder = None
         if bag_writer is not None:
             from testbed.record import EpisodeRecorder
@@ -293,7 +314,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         watch = EpisodeWatch(f"{ep.sc.name} seed {ep.seed}", ep.duration, truth=ep, pipe=pipe)
 
         ahead = None
-        if not sequential and not ep.sc.events and not callable(getattr(detector, "bind_episode", None)):
+        if ahead_wanted:
             ahead = _Ahead(dyn.messages(), detector, dope_every)
         stream = ((m, None, 0.0) for m in dyn.messages()) if ahead is None else ahead
         for msg, found, found_s in stream:

@@ -12,8 +12,10 @@ reads its two itself):
 
     DOPESLAM_CACHE          root of the caches (default ~/.cache/dopeslam): perception/, vocabulary/,
                             topomap_streams/; the simulator keeps its textures in assets/ under it
-    DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode)
-    DOPESLAM_TORCH_THREADS  torch threads of the detector (read by stack.config.torch_threads)
+    DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode;
+                            unset: on where testbed.run runs the detector ahead, else off)
+    DOPESLAM_TORCH_THREADS  torch threads of the detector (read by stack.config.torch_threads;
+                            unset: 1 where testbed.run runs the detector ahead, else torch's)
 
 Configuration keys come from ``DOPESLAM_SECTION__KEY`` variables (a double underscore), see
 :mod:`stack.config`.

@@ -142,7 +142,8 @@ def register(sub) -> None:
     add_dynamic_options(p)
     p.add_argument("--sequential", action="store_true",
                    help="run the detector in the message loop (default: in a thread a few images ahead of the "
-                        "pipeline, the same results in less wall time)")
+                        "pipeline with one torch thread, the camera rendered in a second process: the same "
+                        "results in less wall time)")
     p.add_argument("--json", action="store_true", help="print the report (report.json's content) as JSON on stdout (logs on stderr)")
     add_view_options(p)
     p.set_defaults(func=run)

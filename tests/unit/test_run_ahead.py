@@ -46,3 +46,28 @@ def test_an_error_in_the_detector_reaches_the_loop():
 
     with pytest.raises(RuntimeError, match="weights gone"):
         list(_Ahead(_messages(), Broken()))
+
+
+class BoundDetector:
+    def bind_episode(self, ep):
+        pass
+
+    def detect(self, frame):
+        return []
+
+
+@pytest.mark.parametrize("env, sequential, detector, expected", [
+    (None, False, None, (True, True)),  # ahead: the camera renders in a second process
+    (None, True, None, (False, None)),  # in the loop: DOPESLAM_RENDER_WORKER's default (off)
+    (None, False, BoundDetector(), (False, None)),  # a detector bound to the episode runs in the loop
+    ("0", False, None, (True, False)),  # the variable, when set, wins
+    ("1", True, None, (False, True)),
+])
+def test_ahead_settings(monkeypatch, env, sequential, detector, expected):
+    from testbed.run import ahead_settings
+
+    if env is None:
+        monkeypatch.delenv("DOPESLAM_RENDER_WORKER", raising=False)
+    else:
+        monkeypatch.setenv("DOPESLAM_RENDER_WORKER", env)
+    assert ahead_settings(sequential, detector) == expected
