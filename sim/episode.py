@@ -345,6 +345,10 @@ class Episode:
 
     # --- the loop ---------------------------------------------------------------------------------
     def frames(self) -> Iterator[LidarScan | CameraFrame | WheelOdometry]:
+        """The sensors' messages in time order. While a message is out, ``groundtruth_rows`` is the
+        number of ground-truth rows there were when it was made (with the render worker a frame
+        comes out a camera period later, after more physics steps; a recorder that writes the
+        ground truth up to each message writes the same bag either way)."""
         import time
 
         s = self.sc.sensors
@@ -356,8 +360,8 @@ class Episode:
         col_t = self.beams.column_times()
         az = self.beams.azimuths()
         worker = self._render_worker
-        in_flight = None  # (t, T_world_cam) of the frame the render worker is drawing
-        held = []  # messages after that frame, held back to keep the time order
+        in_flight = None  # (t, T_world_cam, ground-truth rows) of the frame the render worker is drawing
+        held = []  # (message, ground-truth rows) after that frame, held back to keep the time order
         wall0 = time.perf_counter()
         for k in range(steps + 1):
             t = k * self.dt
@@ -368,6 +372,7 @@ class Episode:
             self.groundtruth.add(t, xyz, quat)
             if k > 0:
                 self.robot.update_odometry(self.dt)
+            rows = len(self.groundtruth)
             out = []
             if k % odo_every == 0:
                 out.append(WheelOdometry(t, self.robot.T_odom_base.copy(), self.robot.odo_v, self.robot.odo_w))
@@ -380,24 +385,30 @@ class Episode:
                 if worker is None:
                     out.append(self._camera_frame(t, T_world_base))
                 else:  # collect the previous frame, start this one, then hand out what came before it
-                    ready = ([self._collect_frame(*in_flight)] if in_flight else []) + held + out
+                    ready = ([(self._collect_frame(*in_flight[:2]), in_flight[2])] if in_flight else []) + held \
+                        + [(m, rows) for m in out]
                     held, out = [], []
-                    in_flight = self._submit_frame(t, T_world_base)
-                    yield from ready
+                    in_flight = (*self._submit_frame(t, T_world_base), rows)
+                    yield from self._marked(ready)
             if in_flight:
-                held.extend(out)
+                held.extend((m, rows) for m in out)
             else:
-                yield from out
+                yield from self._marked((m, rows) for m in out)
             if k == steps:
                 break
             v, w = self.follower(t, T_world_base)
             self.robot.command(v, w, self.dt)
             p.stepSimulation(physicsClientId=self.client)
         if in_flight:
-            yield self._collect_frame(*in_flight)
-            yield from held
+            yield from self._marked([(self._collect_frame(*in_flight[:2]), in_flight[2])] + held)
+        self.groundtruth_rows = len(self.groundtruth)
         self.wall_seconds = time.perf_counter() - wall0
         self.sim_seconds = steps * self.dt
+
+    def _marked(self, pairs):
+        for msg, rows in pairs:
+            self.groundtruth_rows = rows
+            yield msg
 
     def _lidar_scan(self, stamp: float, dirs, col_t, az) -> LidarScan:
         gt = self.groundtruth

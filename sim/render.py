@@ -77,6 +77,15 @@ def render_raw(client: int, T_world_cam: np.ndarray, info: CameraInfo, renderer:
 
 # --- rendering in a second process -----------------------------------------------------------------
 
+def render_worker_wanted(default: bool) -> bool:
+    """Whether to render in a second process: ``DOPESLAM_RENDER_WORKER`` (``1`` or ``0``) when it is
+    set, else ``default`` (the caller's choice for its own loop)."""
+    import os
+
+    value = os.environ.get("DOPESLAM_RENDER_WORKER", "").strip()
+    return value == "1" if value else bool(default)
+
+
 _REQUEST = np.dtype([("T_world_cam", "<f8", (4, 4)), ("T_world_base", "<f8", (4, 4)), ("light", "<f8"),
                      ("seed", "<u8"), ("noise", "u1")])
 

@@ -147,7 +147,7 @@ class EpisodeRecorder:
         t0, c0 = time.perf_counter(), time.thread_time()
         if not self._finished:
             self._start()
-            self._submit_ground_truth_poses()
+            self._submit_ground_truth_poses(upto_message=False)
             self._finished = True
             if self._thread is not None:
                 self._queue.put(None)
@@ -171,9 +171,11 @@ class EpisodeRecorder:
                      T.VELODYNE, ep.camera_info.frame_id)
         self._submit(self.writer.write_ground_truth_objects, 0.0, list(ep.objects))
 
-    def _submit_ground_truth_poses(self) -> None:
+    def _submit_ground_truth_poses(self, upto_message: bool = True) -> None:
         gt = self.ep.groundtruth
         n = len(gt)
+        if upto_message:  # up to the message being written (``Episode.frames``), not beyond
+            n = min(n, getattr(self.ep, "groundtruth_rows", n))
         if n > self._gt_written:
             stamps, poses = gt.window(self._gt_written, n)
             self._gt_written = n
@@ -223,10 +225,14 @@ def record_episode(scenario=None, bag: Path | str = "out/episode", format: str |
     from sim.faults import FaultInjector, parse_overrides
 
     from sim.episode import Episode
+    from sim.render import render_worker_wanted
 
     bag = Path(bag)
     wall0 = time.perf_counter()
-    with Episode(scenario, seed=seed, duration=duration, light=light) as ep:
+    # rendered in this process unless DOPESLAM_RENDER_WORKER=1 (the same bag either way; the writer's
+    # thread, which encodes the images, is what a recording waits for: no faster with the worker)
+    with Episode(scenario, seed=seed, duration=duration, light=light,
+                 render_worker=render_worker_wanted(False)) as ep:
         writer = BagWriter(bag, format, storage, compress=compress, overwrite=overwrite, images=images)
         with writer:
             rec = EpisodeRecorder(writer, ep)

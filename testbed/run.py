@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -125,7 +124,7 @@ def make_detector(input_mode: str, stages: int, fpr: bool, weights=None, config=
     return DopeDetector(weights=weights, input=input_mode, stages=stages, fpr=fpr, dims=dims, threads=threads)
 
 
-def ahead_settings(sequential: bool, detector) -> tuple[bool, bool | None]:
+def ahead_settings(sequential: bool, detector) -> tuple[bool, bool]:
     """Whether ``run_episode`` may run ``detector`` ahead of the pipeline, and its render worker then.
 
     Ahead, three things share the two cores of the reference machine: the simulator with the stack's
@@ -133,9 +132,10 @@ def ahead_settings(sequential: bool, detector) -> tuple[bool, bool | None]:
     detector in its thread with one torch thread. On two idle cores that took the default episode from
     132 s (sequential, torch's two threads, no render worker) to 117 s with the same bytes out
     (docs/speed.md). The render worker: ``DOPESLAM_RENDER_WORKER`` when set, else on when ahead."""
+    from sim.render import render_worker_wanted
+
     ahead = not sequential and not callable(getattr(detector, "bind_episode", None))
-    worker = os.environ.get("DOPESLAM_RENDER_WORKER", "").strip()
-    return ahead, (worker == "1") if worker else (True if ahead else None)
+    return ahead, render_worker_wanted(ahead)
 
 
 DOPE_DETECTOR = "stack.dope_fpr:DopeDetector"
@@ -249,7 +249,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     ahead of the pipeline, with the camera rendered in a second process and, for the DOPE detector
     made here, one torch thread (:func:`ahead_settings`; the same results, less wall time), except in
     scenarios with events and with a detector bound to the episode, whose truth must be read at the
-    image's own time."""
+    image's own time, and while recording (``bag_writer``)."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
@@ -265,7 +265,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     from sim.scenario import Scenario, load_scenario
 
     scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
-    ahead_wanted, render_worker = ahead_settings(sequential or bool(scenario.events), detector)
+    # in the loop: with events, and while recording (the bag interleaves the ground truth by the loop)
+    ahead_wanted, render_worker = ahead_settings(sequential or bool(scenario.events) or bag_writer is not None,
+                                                 detector)
     detector = detector or make_detector(input_mode, stages, fpr, weights, None if config is None else config.detector,
                                          threads=1 if ahead_wanted else None)
     dims = {c: s.dims for c, s in load_catalog().items()}

@@ -39,3 +39,22 @@ def test_compressed_and_raw_bags_replay_to_the_same_labels(tmp_path):
             (b["class"], b["object"], b["verdict"], b["observations"])
         assert np.allclose(a["label_xyz"], b["label_xyz"], rtol=0, atol=1e-9)
     assert out["compressed"][0] < out["raw"][0]
+
+
+@pytest.mark.slow
+def test_a_bag_is_the_same_bytes_whichever_process_renders(tmp_path, monkeypatch):
+    """``dopeslam record`` renders the camera in a second process; rendered in its own loop the bag
+    is the same, file for file and byte for byte."""
+    from test_record_replay import short_scenario
+    from testbed.record import record_episode
+
+    files = {}
+    for worker in ("0", "1"):
+        monkeypatch.setenv("DOPESLAM_RENDER_WORKER", worker)
+        bag = tmp_path / f"worker_{worker}" / "bag"  # the same name: the MCAP file is named after it
+        bag.parent.mkdir()
+        record_episode(short_scenario(), bag, seed=0, duration=2.0)
+        files[worker] = {p.relative_to(bag): p.read_bytes() for p in sorted(bag.rglob("*")) if p.is_file()}
+    assert files["0"] and files["0"].keys() == files["1"].keys()
+    for name in files["0"]:
+        assert files["0"][name] == files["1"][name], name

@@ -58,8 +58,8 @@ class BoundDetector:
 
 @pytest.mark.parametrize("env, sequential, detector, expected", [
     (None, False, None, (True, True)),  # ahead: the camera renders in a second process
-    (None, True, None, (False, None)),  # in the loop: DOPESLAM_RENDER_WORKER's default (off)
-    (None, False, BoundDetector(), (False, None)),  # a detector bound to the episode runs in the loop
+    (None, True, None, (False, False)),  # in the loop: rendered in the loop too
+    (None, False, BoundDetector(), (False, False)),  # a detector bound to the episode runs in the loop
     ("0", False, None, (True, False)),  # the variable, when set, wins
     ("1", True, None, (False, True)),
 ])
