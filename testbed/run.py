@@ -10,6 +10,7 @@ the pipeline's rule, see ``stack/pipeline.py``.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -109,19 +110,22 @@ def score_trajectory(stamps, T_map_base, ep, T_world_map) -> dict:
             "rpe_trans_pct": r.trans_pct, "rpe_rot_deg_per_m": r.rot_deg_per_m, "poses": int(len(stamps))}
 
 
+def detector_kwargs(input_mode: str, stages: int, fpr: bool, weights=None, config=None) -> dict:
+    """``stack.dope_fpr.DopeDetector``'s keyword arguments (``dims``, ``threads`` aside) for
+    :func:`make_detector`'s arguments; plain values (paths as strings)."""
+    kw = config.dope_kwargs() if config is not None else \
+        {"weights": weights, "input": input_mode, "stages": stages, "fpr": fpr}
+    return {k: str(v) if isinstance(v, Path) else v for k, v in kw.items()}
+
+
 def make_detector(input_mode: str, stages: int, fpr: bool, weights=None, config=None, threads: int | None = None):
     """DOPE + FPR for the simulator's classes; ``config`` (a ``stack.config.DetectorConfig``), when
     given, sets everything (the other arguments are then ignored). ``threads``: torch threads when
     ``DOPESLAM_TORCH_THREADS`` is unset (None: torch's default)."""
-    from sim.objects import load_catalog
     from stack.config import torch_threads
-    from stack.dope_fpr import DopeDetector
+    from testbed.detection_process import build_detector
 
-    dims = {c: s.dims for c, s in load_catalog().items()}
-    threads = torch_threads() or threads
-    if config is not None:
-        return DopeDetector(dims=dims, threads=threads, **config.dope_kwargs())
-    return DopeDetector(weights=weights, input=input_mode, stages=stages, fpr=fpr, dims=dims, threads=threads)
+    return build_detector(detector_kwargs(input_mode, stages, fpr, weights, config), torch_threads() or threads)
 
 
 def ahead_settings(sequential: bool, detector) -> tuple[bool, bool]:
@@ -129,9 +133,10 @@ def ahead_settings(sequential: bool, detector) -> tuple[bool, bool]:
 
     Ahead, three things share the two cores of the reference machine: the simulator with the stack's
     odometry and fusion, the camera's renderer in a second process (``sim.render.RenderWorker``) and the
-    detector in its thread with one torch thread. On two idle cores that took the default episode from
-    132 s (sequential, torch's two threads, no render worker) to 117 s with the same bytes out
-    (docs/speed.md). The render worker: ``DOPESLAM_RENDER_WORKER`` when set, else on when ahead."""
+    DOPE detector with one torch thread, in a child process of its own (``testbed.detection_process``;
+    a thread for other detectors). On two idle cores that took the default episode from 132 s (in the
+    loop, torch's two threads, no render worker) to 101 s with the same bytes out (docs/speed.md).
+    The render worker: ``DOPESLAM_RENDER_WORKER`` when set, else on when ahead."""
     from sim.render import render_worker_wanted
 
     ahead = not sequential and not callable(getattr(detector, "bind_episode", None))
@@ -161,13 +166,17 @@ class _Ahead:
     every ``every``-th image (None for the rest and for other messages), exactly what the pipeline's
     own call would have found, so the pipeline's results are the same bytes either way."""
 
-    def __init__(self, messages, detector, every: int = 1, images_ahead: int = 2):
+    def __init__(self, messages, detector, every: int = 1, images_ahead: int = 2, process=None):
+        """``process``: a :class:`testbed.detection_process.DetectionProcess` that runs ``detector``'s
+        twin in a child process (then no thread; the caller closes it)."""
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
 
         self._messages, self._detector, self._every = messages, detector, max(1, int(every))
         self._ahead = max(1, int(images_ahead))
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="run-detection")
+        self._process = process
+        self._pool = None if process is not None else \
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="run-detection")
         self._queue: deque = deque()
         self._images = 0
         self.wait_seconds = 0.0  # the pipeline's wait for a detection (not simulation time)
@@ -184,7 +193,8 @@ class _Ahead:
                 job = None
                 if isinstance(msg, CameraFrame):
                     if self._images % self._every == 0:
-                        job = self._pool.submit(self._detect, msg)
+                        job = self._process.submit(msg) if self._process is not None \
+                            else self._pool.submit(self._detect, msg)
                     self._images += 1
                     pending += 1
                 self._queue.append((msg, job))
@@ -198,7 +208,8 @@ class _Ahead:
             for _, job in self._queue:
                 if job is not None:
                     job.cancel()
-            self._pool.shutdown(wait=True)
+            if self._pool is not None:
+                self._pool.shutdown(wait=True)
 
     def _take_is_image(self) -> int:
         msg, job = self._queue.popleft()
@@ -246,8 +257,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     ``RetireConfig``; or False); see ``testbed/dynamic.py``. ``profile``: ``full`` or ``fast``
     (``testbed.settings.profile_sensors``; None: ``config``'s ``run.profile``, else ``full``).
     ``sequential``: run the detector in the message loop; by default it runs in a thread a few images
-    ahead of the pipeline, with the camera rendered in a second process and, for the DOPE detector
-    made here, one torch thread (:func:`ahead_settings`; the same results, less wall time), except in
+    ahead of the pipeline, with the camera rendered in a second process and the DOPE detector made
+    here in a child process with one torch thread (:func:`ahead_settings`, ``DOPESLAM_DETECTOR_PROCESS``;
+    the same results, less wall time), except in
     scenarios with events and with a detector bound to the episode, whose truth must be read at the
     image's own time, and while recording (``bag_writer``)."""
     from sim.episode import Episode
@@ -268,8 +280,11 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     # in the loop: with events, and while recording (the bag interleaves the ground truth by the loop)
     ahead_wanted, render_worker = ahead_settings(sequential or bool(scenario.events) or bag_writer is not None,
                                                  detector)
-    detector = detector or make_detector(input_mode, stages, fpr, weights, None if config is None else config.detector,
-                                         threads=1 if ahead_wanted else None)
+    own_kwargs = None  # the DOPE detector made here, which the detector process can make too
+    if detector is None:
+        own_kwargs = detector_kwargs(input_mode, stages, fpr, weights, None if config is None else config.detector)
+        detector = make_detector(input_mode, stages, fpr, weights, None if config is None else config.detector,
+                                 threads=1 if ahead_wanted else None)
     dims = {c: s.dims for c, s in load_catalog().items()}
     if profile is None:
         profile = getattr(getattr(config, "run", None), "profile", "full")
@@ -282,7 +297,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         camera_rate, segmentation = profile_sensors(profile, scenario.sensors.camera_rate, needs)
     wall0 = time.perf_counter()
     with Episode(scenario, seed=seed, duration=duration, light=light, camera_rate=camera_rate,
-                 segmentation=segmentation, render_worker=render_worker) as ep:
+                 segmentation=segmentation, render_worker=render_worker) as ep, contextlib.ExitStack() as closing:
         recorder = None
         if bag_writer is not None:
             from testbed.record import EpisodeRecorder
@@ -315,9 +330,17 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
         watch = EpisodeWatch(f"{ep.sc.name} seed {ep.seed}", ep.duration, truth=ep, pipe=pipe)
 
-        ahead = None
+        ahead = process = None
         if ahead_wanted:
-            ahead = _Ahead(dyn.messages(), detector, dope_every)
+            from testbed.settings import detection_process_wanted
+
+            if own_kwargs is not None and detection_process_wanted() and ep.use_camera:
+                from stack.config import torch_threads
+                from testbed.detection_process import DetectionProcess
+
+                process = DetectionProcess(own_kwargs, ep.camera_info, torch_threads() or 1)
+                closing.callback(process.close)
+            ahead = _Ahead(dyn.messages(), detector, dope_every, process=process)
         stream = ((m, None, 0.0) for m in dyn.messages()) if ahead is None else ahead
         for msg, found, found_s in stream:
             simulation_s += time.perf_counter() - t_last

@@ -12,6 +12,8 @@ reads its two itself):
 
     DOPESLAM_CACHE          root of the caches (default ~/.cache/dopeslam): perception/, vocabulary/,
                             topomap_streams/; the simulator keeps its textures in assets/ under it
+    DOPESLAM_DETECTOR_PROCESS  0: where testbed.run runs the DOPE detector ahead, in a thread instead
+                            of a child process (read by detection_process_wanted)
     DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode;
                             unset: on where testbed.run runs the detector ahead, else off)
     DOPESLAM_TORCH_THREADS  torch threads of the detector (read by stack.config.torch_threads;
@@ -73,6 +75,13 @@ def profile_sensors(profile: str, camera_rate: float, needs_segmentation: bool) 
     if profile == "fast":
         return camera_rate * FAST_CAMERA_FACTOR, needs_segmentation
     return camera_rate, True
+
+
+def detection_process_wanted(environ: Mapping[str, str] | None = None) -> bool:
+    """``DOPESLAM_DETECTOR_PROCESS``: ``0`` runs the DOPE detector that ``testbed.run`` runs ahead of
+    the pipeline in a thread; anything else or unset, in a child process (:mod:`testbed.detection_process`)."""
+    environ = os.environ if environ is None else environ
+    return environ.get("DOPESLAM_DETECTOR_PROCESS", "").strip() != "0"
 
 
 def cache_dir(name: str, environ: Mapping[str, str] | None = None, create: bool = True) -> Path:

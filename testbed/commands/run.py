@@ -141,9 +141,9 @@ def register(sub) -> None:
     add_config_options(p)
     add_dynamic_options(p)
     p.add_argument("--sequential", action="store_true",
-                   help="run the detector in the message loop (default: in a thread a few images ahead of the "
-                        "pipeline with one torch thread, the camera rendered in a second process: the same "
-                        "results in less wall time)")
+                   help="run the detector in the message loop (default: a few images ahead of the pipeline, "
+                        "in a process of its own with one torch thread, the camera rendered in another: the "
+                        "same results in less wall time)")
     p.add_argument("--json", action="store_true", help="print the report (report.json's content) as JSON on stdout (logs on stderr)")
     add_view_options(p)
     p.set_defaults(func=run)

@@ -99,3 +99,25 @@ def test_channels_last_gives_the_same_detections():
         for a, b in zip(fast, plain):
             assert np.abs(a.keypoints_px - b.keypoints_px).max() < 1e-3
             assert np.abs(a.T_cam_obj[:3, 3] - b.T_cam_obj[:3, 3]).max() < 1e-4
+
+
+@pytest.mark.parametrize("input_mode", ["rgb", "depth"])
+def test_the_detector_process_gives_the_same_detections(input_mode):
+    """``dopeslam run``'s detector in a child process (testbed.detection_process) against the same
+    detector here, on rendered frames: every detection the same, bit for bit, extras and their types."""
+    from testbed.detection_process import DetectionProcess, build_detector, encode_detection
+    from testbed.run import detector_kwargs
+
+    kwargs = detector_kwargs(input_mode, 6, True)
+    here = build_detector(kwargs, 1)
+    frames = [_render(cls, distance)[0] for cls, distance in (("E", 0.8), ("Mustard", 0.9), ("Cookies", 0.7))]
+    proc = DetectionProcess(kwargs, frames[0].info, threads=1, slots=2)
+    try:
+        jobs = [proc.submit(f) for f in frames]  # three jobs through two slots
+        found = [job.result()[0] for job in jobs]
+    finally:
+        proc.close()
+    expected = [here.detect(f) for f in frames]
+    assert any(expected), "nothing detected"
+    assert [[encode_detection(d) for d in dets] for dets in found] == \
+        [[encode_detection(d) for d in dets] for dets in expected]

@@ -71,3 +71,10 @@ def test_ahead_settings(monkeypatch, env, sequential, detector, expected):
     else:
         monkeypatch.setenv("DOPESLAM_RENDER_WORKER", env)
     assert ahead_settings(sequential, detector) == expected
+
+
+@pytest.mark.parametrize("value, expected", [(None, True), ("1", True), ("0", False), (" 0 ", False)])
+def test_detection_process_setting(value, expected):
+    from testbed.settings import detection_process_wanted
+
+    assert detection_process_wanted({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) is expected

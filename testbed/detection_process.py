@@ -1,0 +1,239 @@
+"""The DOPE detector in a child process, for ``dopeslam run``'s detector ahead of the pipeline.
+
+In a thread the network shares the interpreter's lock with the simulator and the stack; in a process
+of its own it waits only for a core. Frames go to the child through shared memory (a few slots, one
+per image in flight) with a JSON line naming the slot; detections come back as JSON lines whose
+arrays and NumPy scalars carry their dtype, so a detection decodes to the same values and types the
+detector made (no pickling). The child builds its detector from the same keyword arguments as the
+parent's, so it finds the same detections.
+"""
+from __future__ import annotations
+
+import base64
+import json
+import os
+import subprocess
+import sys
+import time
+from multiprocessing import shared_memory
+
+import numpy as np
+
+from stack.messages import CameraFrame, CameraInfo, Detection
+
+
+# --- values through JSON, types kept ---------------------------------------------------------------
+
+def encode_value(v):
+    """A JSON-able form of ``v`` that :func:`decode_value` turns back into the same value and type."""
+    if isinstance(v, np.ndarray):
+        a = np.ascontiguousarray(v)
+        return {"__nd__": [a.dtype.str, list(a.shape), base64.b64encode(a.tobytes()).decode("ascii")]}
+    if isinstance(v, np.generic):
+        return {"__np__": [v.dtype.str, base64.b64encode(np.asarray(v).tobytes()).decode("ascii")]}
+    if isinstance(v, tuple):
+        return {"__tuple__": [encode_value(x) for x in v]}
+    if isinstance(v, list):
+        return [encode_value(x) for x in v]
+    if isinstance(v, dict):
+        if not all(isinstance(k, str) for k in v):
+            raise TypeError("detection extras: only str keys pass to the detector process")
+        return {"__dict__": {k: encode_value(x) for k, x in v.items()}}
+    if v is None or isinstance(v, (bool, int, float, str)):
+        return v
+    raise TypeError(f"detection extras: a {type(v).__name__} cannot pass to the detector process")
+
+
+def decode_value(v):
+    if isinstance(v, list):
+        return [decode_value(x) for x in v]
+    if isinstance(v, dict):
+        if "__nd__" in v:
+            dtype, shape, data = v["__nd__"]
+            return np.frombuffer(base64.b64decode(data), dtype=np.dtype(dtype)).reshape(shape).copy()
+        if "__np__" in v:
+            dtype, data = v["__np__"]
+            return np.frombuffer(base64.b64decode(data), dtype=np.dtype(dtype))[0]
+        if "__tuple__" in v:
+            return tuple(decode_value(x) for x in v["__tuple__"])
+        if "__dict__" in v:
+            return {k: decode_value(x) for k, x in v["__dict__"].items()}
+        raise ValueError(f"detector process: unknown record {sorted(v)}")
+    return v
+
+
+_FIELDS = ("cls", "stamp", "T_cam_obj", "keypoints_px", "peak_scores", "belief_sum", "stages", "fpr_pass", "extra")
+
+
+def encode_detection(d: Detection) -> dict:
+    return {f: encode_value(getattr(d, f)) for f in _FIELDS}
+
+
+def decode_detection(d: dict) -> Detection:
+    return Detection(**{f: decode_value(d[f]) for f in _FIELDS})
+
+
+# --- the parent's side ------------------------------------------------------------------------------
+
+class _Pending:
+    """A detection job in the child: ``result()`` gives ``(detections, seconds)`` as a Future would."""
+
+    def __init__(self, owner: "DetectionProcess", token: int):
+        self._owner, self.token = owner, token
+
+    def result(self):
+        return self._owner._result(self.token)
+
+    def cancel(self) -> bool:
+        return False
+
+
+class DetectionProcess:
+    """A DOPE detector (:class:`stack.dope_fpr.DopeDetector` built from ``kwargs``) in a child process.
+
+    ``submit(frame)`` copies the frame into a free slot and returns at once; jobs are done in order,
+    so ``result()`` of a later job reads the replies of the earlier ones first. At most ``slots`` jobs
+    are in flight. ``close()`` ends the child (also on errors)."""
+
+    def __init__(self, kwargs: dict, info: CameraInfo, threads: int | None = 1, slots: int = 4):
+        H, W = info.height, info.width
+        self._slot_bytes = H * W * 3 + H * W * 4
+        self._slots = int(slots)
+        self._shm = shared_memory.SharedMemory(create=True, size=self._slot_bytes * self._slots)
+        self._shape = (H, W)
+        env = dict(os.environ)  # the child imports this package from where the parent found it
+        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        env["PYTHONPATH"] = os.pathsep.join(x for x in (root, env.get("PYTHONPATH", "")) if x)
+        cmd = [sys.executable, "-c", "from testbed.detection_process import _child_main; _child_main()"]
+        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
+        setup = {"kwargs": encode_value(kwargs), "threads": threads, "shm": self._shm.name,
+                 "height": H, "width": W, "slots": self._slots}
+        self._send(setup)
+        self._next = 0  # the next job's token
+        self._done: dict[int, tuple] = {}  # replies read ahead of their turn
+        self._read = 0  # replies read so far
+        self._ready = False
+
+    def _send(self, obj) -> None:
+        try:
+            self._proc.stdin.write(json.dumps(obj).encode() + b"\n")
+            self._proc.stdin.flush()
+        except (BrokenPipeError, OSError):
+            self._fail("the detector process exited")
+
+    def _reply(self) -> dict:
+        line = self._proc.stdout.readline()
+        if not line:
+            self._fail("the detector process exited")
+        reply = json.loads(line)
+        if "error" in reply:
+            self._fail(reply["error"])
+        return reply
+
+    def _fail(self, why: str):
+        self.close()
+        raise RuntimeError(f"detector process: {why}")
+
+    def submit(self, frame: CameraFrame) -> _Pending:
+        if self._next - self._read >= self._slots:
+            self._collect_one()  # every slot busy: wait for the oldest job
+        slot = self._next % self._slots
+        H, W = self._shape
+        base = slot * self._slot_bytes
+        rgb = np.ndarray((H, W, 3), np.uint8, self._shm.buf, base)
+        depth = np.ndarray((H, W), np.float32, self._shm.buf, base + H * W * 3)
+        if frame.rgb is not None:
+            rgb[...] = frame.rgb
+        if frame.depth_m is not None:
+            depth[...] = frame.depth_m
+        info = frame.info
+        self._send({"slot": slot, "stamp": frame.stamp, "rgb": frame.rgb is not None,
+                    "depth": frame.depth_m is not None, "K": encode_value(np.asarray(info.K)),
+                    "frame_id": info.frame_id, "T": encode_value(frame.T_world_camera)})
+        token = self._next
+        self._next += 1
+        return _Pending(self, token)
+
+    def _collect_one(self) -> None:
+        if not self._ready:
+            self._reply()  # the child's "detector built"
+            self._ready = True
+        reply = self._reply()
+        self._done[self._read] = ([decode_detection(d) for d in reply["detections"]], float(reply["seconds"]))
+        self._read += 1
+
+    def _result(self, token: int):
+        while token not in self._done:
+            self._collect_one()
+        return self._done.pop(token)
+
+    def close(self) -> None:
+        proc = getattr(self, "_proc", None)
+        if proc is not None:
+            self._proc = None
+            try:
+                proc.stdin.close()  # end of jobs: the child exits
+            except OSError:
+                pass
+            try:
+                proc.wait(timeout=10)
+            except Exception:  # noqa: BLE001 - a child that will not stop is killed
+                proc.kill()
+                proc.wait()
+            proc.stdout.close()
+        shm = getattr(self, "_shm", None)
+        if shm is not None:
+            self._shm = None
+            shm.close()
+            shm.unlink()
+
+    def __del__(self):
+        self.close()
+
+
+def build_detector(kwargs: dict, threads: int | None):
+    """The DOPE detector for the simulator's classes from ``make_detector``'s keyword arguments."""
+    from sim.objects import load_catalog
+    from stack.dope_fpr import DopeDetector
+
+    dims = {c: s.dims for c, s in load_catalog().items()}
+    return DopeDetector(dims=dims, threads=threads, **kwargs)
+
+
+def _child_main() -> None:
+    from multiprocessing import resource_tracker
+
+    out = sys.stdout.buffer
+    sys.stdout = sys.stderr  # anything the libraries print stays off the reply pipe
+
+    def reply(obj):
+        out.write(json.dumps(obj).encode() + b"\n")
+        out.flush()
+
+    try:
+        setup = json.loads(sys.stdin.buffer.readline())
+        shm = shared_memory.SharedMemory(name=setup["shm"])
+        resource_tracker.unregister(shm._name, "shared_memory")  # the parent owns (and unlinks) it
+        H, W, slots = setup["height"], setup["width"], setup["slots"]
+        slot_bytes = H * W * 3 + H * W * 4
+        detector = build_detector(decode_value(setup["kwargs"]), setup["threads"])
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises
+        reply({"error": f"{type(exc).__name__}: {exc}"})
+        return
+    reply({"ready": True})
+    for line in sys.stdin.buffer:
+        try:
+            job = json.loads(line)
+            base = job["slot"] * slot_bytes
+            rgb = np.ndarray((H, W, 3), np.uint8, shm.buf, base).copy() if job["rgb"] else None
+            depth = np.ndarray((H, W), np.float32, shm.buf, base + H * W * 3).copy() if job["depth"] else None
+            frame = CameraFrame(job["stamp"], CameraInfo(W, H, decode_value(job["K"]), job["frame_id"]), rgb, depth,
+                                decode_value(job["T"]))
+            t0 = time.perf_counter()
+            dets = list(detector.detect(frame))
+            seconds = time.perf_counter() - t0
+            reply({"detections": [encode_detection(d) for d in dets], "seconds": seconds})
+        except Exception as exc:  # noqa: BLE001
+            reply({"error": f"{type(exc).__name__}: {exc}"})
+            return
+    shm.close()

@@ -1,0 +1,52 @@
+"""The detector process's wire format (detections through JSON with their types) and its errors."""
+import math
+
+import numpy as np
+import pytest
+
+from stack.messages import CameraInfo, Detection
+from testbed.detection_process import (DetectionProcess, decode_detection, decode_value, encode_detection,
+                                       encode_value)
+
+
+def test_values_come_back_with_their_types():
+    value = {"a": np.arange(6, dtype=np.float32).reshape(2, 3), "b": np.float64(0.1), "c": np.bool_(True),
+             "d": (0.3, 1.8), "e": [1, "x", None, float("nan")], "f": {"g": np.int64(7)}, "h": 1e-300}
+    back = decode_value(encode_value(value))
+    assert back.keys() == value.keys()
+    assert back["a"].dtype == np.float32 and np.array_equal(back["a"], value["a"])
+    assert type(back["b"]) is np.float64 and back["b"] == value["b"]
+    assert type(back["c"]) is np.bool_ and back["c"]
+    assert back["d"] == (0.3, 1.8) and isinstance(back["d"], tuple)
+    assert back["e"][:3] == [1, "x", None] and math.isnan(back["e"][3])
+    assert type(back["f"]["g"]) is np.int64 and back["f"]["g"] == 7
+    assert back["h"] == 1e-300
+
+
+def test_a_detection_round_trips_bit_for_bit():
+    rng = np.random.default_rng(0)
+    kp = rng.normal(size=(9, 2))
+    kp[3] = np.nan
+    det = Detection("Mustard", 1.25, rng.normal(size=(4, 4)), kp, rng.random(9), 12.345678901234567, 6, False,
+                    {"pnp_pose": rng.normal(size=(4, 4)), "fpr_rejected_by": "depth", "window": (0.3, 0.6),
+                     "depth_fit": {"ok": True, "shift_m": np.float64(0.01), "n_pixels": 340}})
+    back = decode_detection(encode_detection(det))
+    assert encode_detection(back) == encode_detection(det)
+    assert back.T_cam_obj.tobytes() == det.T_cam_obj.tobytes()
+    assert back.extra["window"] == (0.3, 0.6)
+
+
+def test_what_cannot_pass_is_named():
+    with pytest.raises(TypeError, match="object"):
+        encode_value({"x": object()})
+
+
+def test_a_detector_the_child_cannot_build_is_an_error_in_the_parent(tmp_path):
+    bad = tmp_path / "missing.pt"
+    proc = DetectionProcess({"weights": str(bad), "input": "rgb", "stages": 6, "fpr": True},
+                            CameraInfo(8, 6, np.eye(3)))
+    with pytest.raises(RuntimeError, match="detector process: .*missing.pt"):
+        from stack.messages import CameraFrame
+
+        proc.submit(CameraFrame(0.0, CameraInfo(8, 6, np.eye(3)), np.zeros((6, 8, 3), np.uint8))).result()
+    proc.close()
