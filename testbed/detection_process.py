@@ -137,8 +137,14 @@ class DetectionProcess:
     def submit(self, frame: CameraFrame) -> _Pending:
         if self._next - self._read >= self._slots:
             self._collect_one()  # every slot busy: wait for the oldest job
-        slot = self._next % self._slots
         H, W = self._shape
+        if frame.rgb is not None and (frame.rgb.dtype != np.uint8 or frame.rgb.shape != (H, W, 3)):
+            raise ValueError(f"detector process: colour image {frame.rgb.dtype} {frame.rgb.shape}, expected "
+                             f"uint8 ({H}, {W}, 3)")
+        if frame.depth_m is not None and (frame.depth_m.dtype != np.float32 or frame.depth_m.shape != (H, W)):
+            raise ValueError(f"detector process: depth image {frame.depth_m.dtype} {frame.depth_m.shape}, "
+                             f"expected float32 ({H}, {W})")
+        slot = self._next % self._slots
         base = slot * self._slot_bytes
         rgb = np.ndarray((H, W, 3), np.uint8, self._shm.buf, base)
         depth = np.ndarray((H, W), np.float32, self._shm.buf, base + H * W * 3)

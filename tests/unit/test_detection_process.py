@@ -50,3 +50,17 @@ def test_a_detector_the_child_cannot_build_is_an_error_in_the_parent(tmp_path):
 
         proc.submit(CameraFrame(0.0, CameraInfo(8, 6, np.eye(3)), np.zeros((6, 8, 3), np.uint8))).result()
     proc.close()
+
+
+def test_a_frame_of_another_layout_is_refused_before_it_is_sent(tmp_path):
+    from stack.messages import CameraFrame
+
+    info = CameraInfo(8, 6, np.eye(3))
+    proc = DetectionProcess({"weights": str(tmp_path / "w.pt"), "input": "rgb", "stages": 6, "fpr": True}, info)
+    try:
+        with pytest.raises(ValueError, match="colour image float32"):
+            proc.submit(CameraFrame(0.0, info, np.zeros((6, 8, 3), np.float32)))
+        with pytest.raises(ValueError, match=r"depth image float32 \(5, 8\)"):
+            proc.submit(CameraFrame(0.0, info, depth_m=np.zeros((5, 8), np.float32)))
+    finally:
+        proc.close()
