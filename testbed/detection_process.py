@@ -104,8 +104,15 @@ class DetectionProcess:
         env = dict(os.environ)  # the child imports this package from where the parent found it
         root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         env["PYTHONPATH"] = os.pathsep.join(x for x in (root, env.get("PYTHONPATH", "")) if x)
-        cmd = [sys.executable, "-c", "from testbed.detection_process import _child_main; _child_main()"]
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
+        reply_r, reply_w = os.pipe()  # replies on a pipe of their own: nothing a library prints reaches it
+        cmd = [sys.executable, "-c", "from testbed.detection_process import _child_main; _child_main()", str(reply_w)]
+        try:
+            out = sys.stderr.fileno()  # what the child prints goes where this process's logs go
+        except (AttributeError, OSError, ValueError):
+            out = subprocess.DEVNULL
+        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=out, pass_fds=(reply_w,), env=env)
+        os.close(reply_w)
+        self._replies = os.fdopen(reply_r, "rb")
         setup = {"kwargs": encode_value(kwargs), "threads": threads, "shm": self._shm.name,
                  "height": H, "width": W, "slots": self._slots}
         self._send(setup)
@@ -122,7 +129,7 @@ class DetectionProcess:
             self._fail("the detector process exited")
 
     def _reply(self) -> dict:
-        line = self._proc.stdout.readline()
+        line = self._replies.readline()
         if not line:
             self._fail("the detector process exited")
         reply = json.loads(line)
@@ -186,7 +193,7 @@ class DetectionProcess:
             except Exception:  # noqa: BLE001 - a child that will not stop is killed
                 proc.kill()
                 proc.wait()
-            proc.stdout.close()
+            self._replies.close()
         shm = getattr(self, "_shm", None)
         if shm is not None:
             self._shm = None
@@ -209,8 +216,7 @@ def build_detector(kwargs: dict, threads: int | None):
 def _child_main() -> None:
     from multiprocessing import resource_tracker
 
-    out = sys.stdout.buffer
-    sys.stdout = sys.stderr  # anything the libraries print stays off the reply pipe
+    out = os.fdopen(int(sys.argv[1]), "wb")
 
     def reply(obj):
         out.write(json.dumps(obj).encode() + b"\n")
