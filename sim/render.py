@@ -106,16 +106,15 @@ class RenderWorker:
         import sys
         from multiprocessing import shared_memory
 
+        from sim.child import package_env
+
         self.info = info
         H, W = info.height, info.width
         self._sizes = (H * W * 3, H * W * 4, H * W * 4)
         self._shm = shared_memory.SharedMemory(create=True, size=sum(self._sizes))
         reply_r, reply_w = os.pipe()
         cmd = [sys.executable, "-c", "from sim.render import _render_worker_main; _render_worker_main()", str(reply_w)]
-        env = dict(os.environ)  # the child imports this package from where the parent found it
-        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-        env["PYTHONPATH"] = os.pathsep.join(x for x in (root, env.get("PYTHONPATH", "")) if x)
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, pass_fds=(reply_w,), env=env)
+        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, pass_fds=(reply_w,), env=package_env())
         os.close(reply_w)
         self._replies = os.fdopen(reply_r, "rb", buffering=0)
         setup = {"scenario": scenario.model_dump(mode="json", by_alias=True), "width": W, "height": H,
@@ -160,24 +159,11 @@ class RenderWorker:
         return rgb, depth, seg if self.segmentation else None
 
     def close(self) -> None:
-        proc = getattr(self, "_proc", None)
-        if proc is not None:
-            self._proc = None
-            try:
-                proc.stdin.close()  # end of requests: the worker exits
-            except OSError:
-                pass
-            try:
-                proc.wait(timeout=10)
-            except Exception:  # noqa: BLE001 - a worker that will not stop is killed
-                proc.kill()
-                proc.wait()
-            self._replies.close()
-        shm = getattr(self, "_shm", None)
-        if shm is not None:
-            self._shm = None
-            shm.close()
-            shm.unlink()
+        from sim.child import stop_child
+
+        proc, replies, shm = (getattr(self, k, None) for k in ("_proc", "_replies", "_shm"))
+        self._proc = self._replies = self._shm = None
+        stop_child(proc, replies, shm)  # end of requests: the worker exits
 
     def __del__(self):
         self.close()

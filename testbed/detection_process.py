@@ -19,6 +19,7 @@ from multiprocessing import shared_memory
 
 import numpy as np
 
+from sim.child import package_env, stop_child
 from stack.messages import CameraFrame, CameraInfo, Detection
 
 
@@ -101,16 +102,13 @@ class DetectionProcess:
         self._slots = int(slots)
         self._shm = shared_memory.SharedMemory(create=True, size=self._slot_bytes * self._slots)
         self._shape = (H, W)
-        env = dict(os.environ)  # the child imports this package from where the parent found it
-        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-        env["PYTHONPATH"] = os.pathsep.join(x for x in (root, env.get("PYTHONPATH", "")) if x)
         reply_r, reply_w = os.pipe()  # replies on a pipe of their own: nothing a library prints reaches it
         cmd = [sys.executable, "-c", "from testbed.detection_process import _child_main; _child_main()", str(reply_w)]
         try:
             out = sys.stderr.fileno()  # what the child prints goes where this process's logs go
         except (AttributeError, OSError, ValueError):
             out = subprocess.DEVNULL
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=out, pass_fds=(reply_w,), env=env)
+        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=out, pass_fds=(reply_w,), env=package_env())
         os.close(reply_w)
         self._replies = os.fdopen(reply_r, "rb")
         setup = {"kwargs": encode_value(kwargs), "threads": threads, "shm": self._shm.name,
@@ -181,24 +179,9 @@ class DetectionProcess:
         return self._done.pop(token)
 
     def close(self) -> None:
-        proc = getattr(self, "_proc", None)
-        if proc is not None:
-            self._proc = None
-            try:
-                proc.stdin.close()  # end of jobs: the child exits
-            except OSError:
-                pass
-            try:
-                proc.wait(timeout=10)
-            except Exception:  # noqa: BLE001 - a child that will not stop is killed
-                proc.kill()
-                proc.wait()
-            self._replies.close()
-        shm = getattr(self, "_shm", None)
-        if shm is not None:
-            self._shm = None
-            shm.close()
-            shm.unlink()
+        proc, replies, shm = (getattr(self, k, None) for k in ("_proc", "_replies", "_shm"))
+        self._proc = self._replies = self._shm = None
+        stop_child(proc, replies, shm)  # end of jobs: the child exits
 
     def __del__(self):
         self.close()

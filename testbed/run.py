@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stack.config import torch_threads
 from stack.lidar_slam import LidarOdometry
 from stack.messages import CameraFrame, Detection, LidarScan
 from stack.metrics import ate_rmse, ate_rmse_umeyama, rpe, write_tum
@@ -122,7 +123,6 @@ def make_detector(input_mode: str, stages: int, fpr: bool, weights=None, config=
     """DOPE + FPR for the simulator's classes; ``config`` (a ``stack.config.DetectorConfig``), when
     given, sets everything (the other arguments are then ignored). ``threads``: torch threads when
     ``DOPESLAM_TORCH_THREADS`` is unset (None: torch's default)."""
-    from stack.config import torch_threads
     from testbed.detection_process import build_detector
 
     return build_detector(detector_kwargs(input_mode, stages, fpr, weights, config), torch_threads() or threads)
@@ -282,9 +282,10 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
                                                  detector)
     own_kwargs = None  # the DOPE detector made here, which the detector process can make too
     if detector is None:
+        from testbed.detection_process import build_detector
+
         own_kwargs = detector_kwargs(input_mode, stages, fpr, weights, None if config is None else config.detector)
-        detector = make_detector(input_mode, stages, fpr, weights, None if config is None else config.detector,
-                                 threads=1 if ahead_wanted else None)
+        detector = build_detector(own_kwargs, torch_threads() or (1 if ahead_wanted else None))
     dims = {c: s.dims for c, s in load_catalog().items()}
     if profile is None:
         profile = getattr(getattr(config, "run", None), "profile", "full")
@@ -335,7 +336,6 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             from testbed.settings import detection_process_wanted
 
             if own_kwargs is not None and detection_process_wanted() and ep.use_camera:
-                from stack.config import torch_threads
                 from testbed.detection_process import DetectionProcess
 
                 process = DetectionProcess(own_kwargs, ep.camera_info, torch_threads() or 1)
