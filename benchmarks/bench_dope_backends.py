@@ -17,7 +17,9 @@ load of the machine falls on all of them alike. Reported per backend and thread 
 Backends:
 
 - ``torch``: eager, ``torch.no_grad``, as the detector runs;
-- ``torch channels-last``: ``inference_mode``, weights and input channels-last;
+- ``torch channels-last``: ``inference_mode``, weights and input channels-last (the detector's default);
+- ``torch channels-last bf16``: as ``DopeDetector(precision="bf16")`` runs it, weights and input in
+  bfloat16; only on a CPU with native bfloat16 (AVX512-BF16 or AMX);
 - ``onnxruntime``: the network exported with ``torch.onnx.export(..., dynamo=False)`` (opset 17, batch,
   height and width free) to a temporary folder and run by ONNX Runtime's CPUExecutionProvider, every graph
   optimisation on, idle threads sleeping; ``onnxruntime spin`` lets them spin-wait (ONNX Runtime's
@@ -167,13 +169,14 @@ def main(argv=None) -> int:
     except ModuleNotFoundError as exc:
         ort_version = None
         notes.append(f"onnxruntime skipped: {exc.name} is not installed (pip install onnxruntime onnx)")
-    from stack.dope_fpr import DopeDetector
+    from stack.dope_fpr import DopeDetector, bf16_native
     from stack.messages import CameraFrame
 
     torch.set_num_threads(1)
     raw, dims = render_frames(args.frames)
     frames = [CameraFrame(0.1 * i, info, rgb=rgb, depth_m=depth) for i, (info, rgb, depth) in enumerate(raw)]
-    det = DopeDetector(weights=args.weights, input=args.input, stages=args.stages, dims=dims, threads=1)
+    det = DopeDetector(weights=args.weights, input=args.input, stages=args.stages, dims=dims, threads=1,
+                       precision="fp32")  # the reference: fp32 (bf16 is a backend below)
     model, S = det.model, args.stages
     inputs = [det._inputs(f)[0] for f in frames]
     inputs = [x for x in inputs if len(x)]
@@ -191,6 +194,13 @@ def main(argv=None) -> int:
         xt = torch.from_numpy(x).contiguous(memory_format=torch.channels_last)
         return [(b.numpy(), a.numpy()) for b, a in model_cl(xt, S)]
 
+    model_bf16 = copy.deepcopy(model_cl).to(torch.bfloat16)
+
+    @torch.inference_mode()
+    def bf16_fn(x):  # as DopeDetector(precision="bf16") runs it
+        xt = torch.from_numpy(x).to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
+        return [(b.float().numpy(), a.float().numpy()) for b, a in model_bf16(xt, S)]
+
     cache = tempfile.TemporaryDirectory(prefix="dope-onnx-")
     if ort_version:
         t0 = time.perf_counter()
@@ -200,6 +210,8 @@ def main(argv=None) -> int:
     for th in threads:
         backends.append(("torch", th, torch_fn, 0.0))
         backends.append(("torch channels-last", th, channels_last_fn, 0.0))
+        if bf16_native():
+            backends.append(("torch channels-last bf16", th, bf16_fn, 0.0))
         for spin in ((False, True) if th > 1 else (False,)) if ort_version else ():
             t0 = time.perf_counter()
             sess = ort_session(onnx_file, th, spin)
@@ -264,6 +276,8 @@ def main(argv=None) -> int:
                      "keypoint_diff_px": max(r[2] for r in res), "translation_diff_mm": max(r[3] for r in res),
                      "first_use_s": first})
     cache.cleanup()
+    if not bf16_native():
+        notes.append("bf16 skipped: this CPU has no native bfloat16 (AVX512-BF16 or AMX)")
 
     print(f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}; {args.input} input 320x240, {S} stages, "
           f"{len(frames)} frames, {args.repeats} passes per backend; torch {torch.__version__}, "

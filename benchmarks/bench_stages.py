@@ -16,12 +16,14 @@ The floors, measured on the same machine and the same data:
 
 - rendering: ``p.getCameraImage`` alone for one frame at the camera's size (no noise, no copies),
   with and without the segmentation mask, times the camera rate;
-- DOPE network: its FLOPs (``torch.utils.flop_counter``) per image at this CPU's measured fp32
-  matmul GFLOP/s (a 1024^3 ``torch.mm`` with the same torch threads), times the images per second;
+- DOPE network: its FLOPs (``torch.utils.flop_counter``) per image at this CPU's measured matmul
+  GFLOP/s in the network's precision (a 1024^3 ``torch.mm`` in fp32, or bf16 where the detector runs
+  bf16, with the same torch threads), times the images per second;
 - odometry: KISS-ICP's own ``KissICP.register_frame`` on the same sweeps (the points the simulator
   gave), times the sweep rate.
 
     python benchmarks/bench_stages.py [--scenario NAME] [--duration S] [--seed N] [--profile full|fast]
+        [--precision fp32|bf16]
 """
 from __future__ import annotations
 
@@ -68,11 +70,13 @@ class Meter:
         setattr(owner, name, timed)
 
 
-def matmul_gflops(n: int = 1024, repeats: int = 5) -> float:
-    """Best fp32 GFLOP/s of an n^3 matrix product with torch's current thread count (CPU time)."""
+def matmul_gflops(n: int = 1024, repeats: int = 5, precision: str = "fp32") -> float:
+    """Best GFLOP/s of an n^3 matrix product (``precision`` fp32 or bf16) with torch's current thread
+    count (CPU time)."""
     import torch
 
-    a, b = torch.randn(n, n), torch.randn(n, n)
+    dtype = torch.bfloat16 if precision == "bf16" else torch.float32
+    a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
     torch.mm(a, b)
     best = float("inf")
     for _ in range(repeats):
@@ -127,7 +131,7 @@ def kiss_floor(scans, config) -> float:
     return (time.process_time() - t0) / max(len(scans), 1)
 
 
-def measure(scenario=None, duration=None, seed=0, profile: str = "full") -> dict:
+def measure(scenario=None, duration=None, seed=0, profile: str = "full", precision: str | None = None) -> dict:
     os.environ.setdefault("DOPESLAM_RENDER_WORKER", "0")  # render here, so the rendering's CPU is counted
     from sim.episode import Episode
     from stack.dope_fpr import DopeDetector
@@ -169,8 +173,14 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full") -> dict
     try:
         with tempfile.TemporaryDirectory() as tmp:
             w0, c0 = time.perf_counter(), time.process_time()
+            config = None
+            if precision is not None:  # the shipped config with the network's precision set
+                from testbed.settings import RunConfig
+
+                config = RunConfig()
+                config.detector.precision = precision
             r = run_episode(scenario, out_dir=tmp, seed=seed, duration=duration, write_outputs=False, profile=profile,
-                            sequential=True)  # one stage at a time: the meter's CPU deltas are each stage's own
+                            sequential=True, config=config)  # one stage at a time: the meter's CPU deltas are each stage's own
             cpu, wall = time.process_time() - c0, time.perf_counter() - w0
     finally:
         Episode.close, LidarOdometry.process, DopeDetector.detect = orig_close, orig_process, orig_detect
@@ -188,14 +198,15 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full") -> dict
             floors["rendering"] = (noseg * handles["camera_rate"], noseg * handles["camera_rate"])
     if det is not None:
         flops = network_flops(det)
-        gflops = matmul_gflops()
+        precision = getattr(det, "precision", "fp32")
+        gflops = matmul_gflops(precision=precision)
         floors["network"] = flops / (gflops * 1e9) * len(frames) / sim_s
     else:
-        flops = gflops = None
+        flops = gflops = precision = None
     if scans:
         floors["odometry"] = kiss_floor(scans, handles["odom_config"]) * len(scans) / sim_s
     return {"sim_s": sim_s, "wall_s": wall, "cpu_s": cpu, "stages": meter.cpu, "calls": meter.calls, "profile": profile,
-            "floors": floors, "flops": flops, "gflops": gflops, "images": len(frames), "scans": len(scans),
+            "floors": floors, "flops": flops, "gflops": gflops, "precision": precision, "images": len(frames), "scans": len(scans),
             "labels": r["labels_summary"]}
 
 
@@ -206,7 +217,7 @@ def table(m: dict) -> str:
              "|---|---:|---:|---:|---|"]
     how = {"rendering": "getCameraImage alone, with segmentation (without: {:.3f})" if m.get("profile", "full") == "full"
            else "getCameraImage alone, without segmentation ({:.3f})",
-           "network": "{flops:.2f} GFLOP per image at {gf:.1f} GFLOP/s (fp32 matmul)",
+           "network": "{flops:.2f} GFLOP per image at {gf:.1f} GFLOP/s ({prec} matmul)",
            "odometry": "KissICP.register_frame on the same sweeps"}
     for st in STAGES:
         v = m["stages"][st] / sim
@@ -214,7 +225,7 @@ def table(m: dict) -> str:
         if isinstance(f, tuple):
             note, f = how[st].format(f[1]), f[0]
         elif f is not None:
-            note = how[st].format(flops=(m["flops"] or 0) / 1e9, gf=m["gflops"] or 0)
+            note = how[st].format(flops=(m["flops"] or 0) / 1e9, gf=m["gflops"] or 0, prec=m.get("precision") or "fp32")
         else:
             note = "-"
         fs = "-" if f is None else f"{f:.3f}"
@@ -231,13 +242,16 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--profile", choices=["full", "fast"], default="full",
                     help="the run profile (fast: camera at half rate, no segmentation image; docs/speed.md)")
+    ap.add_argument("--precision", choices=["fp32", "bf16"], default=None,
+                    help="the DOPE network's arithmetic (default: the detector's default; bf16 runs fp32 on a CPU "
+                         "without native bfloat16)")
     args = ap.parse_args(argv)
     if args.duration is not None and args.duration <= 0:
         print(f"--duration: expected seconds > 0, got {args.duration}", file=sys.stderr)
         return 2
-    m = measure(args.scenario, args.duration, args.seed, args.profile)
+    m = measure(args.scenario, args.duration, args.seed, args.profile, args.precision)
     ls = m["labels"]
-    print(f"profile {args.profile}: {m['sim_s']:.0f} s simulated, {m['images']} images, {m['scans']} sweeps; {m['cpu_s']:.1f} CPU s, "
+    print(f"profile {args.profile}: {m['sim_s']:.0f} s simulated, {m['images']} images, {m['scans']} sweeps, network {m['precision']}; {m['cpu_s']:.1f} CPU s, "
           f"{m['wall_s']:.1f} wall s; torch threads {os.environ.get('DOPESLAM_TORCH_THREADS', 'default')}; "
           f"load average {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print(f"map: {ls['labelled']}/{ls['objects']} labelled, {ls['false_labels']} false")

@@ -300,6 +300,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                              "images": truth is not None},
             "bag_seconds": span, "wall_seconds": wall, "real_time_factor": span / wall if wall > 0 else None,
             "parallel_passes": parallel, "detector": "none" if detector is None else detector_name(detector),
+            "network_precision": getattr(detector, "precision", None),
             "odometry_class": detector_name(odom), "odometry_only": odometry_only,
             "time_split_s": {"odometry": pipe.timing["odometry"], "odometry_reading": read_s,
                              "dope": dlog.seconds, "image_reading": ahead.read_seconds if ahead else 0.0,

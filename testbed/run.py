@@ -398,7 +398,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         report = {
             "scenario": ep.sc.name, "seed": ep.seed, "light": ep.light, "profile": profile,
             "camera_rate_hz": ep.camera_rate, "input": input_mode, "stages": stages,
-            "fpr": fpr, "policy": policy, "detector": detector_name(detector), "odometry_class": detector_name(odom),
+            "fpr": fpr, "policy": policy, "detector": detector_name(detector),
+            "network_precision": getattr(detector, "precision", None), "odometry_class": detector_name(odom),
             "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
             "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,
             "odometry": odo, "wheel_odometry": wheel_score,

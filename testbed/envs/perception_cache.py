@@ -474,7 +474,8 @@ def load_or_build(spec: PerceptionSpec, detector_factory: DetectorFactory | None
 
 def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
     """Identity of the real DOPE detector: input, hashes of its weights, FPR thresholds and colour-model
-    files, and the version of the FPR rule (the FPR verdicts are part of the cached perception)."""
+    files, the version of the FPR rule (the FPR verdicts are part of the cached perception), and the
+    network's precision when it is not fp32 (fp32 caches keep their identity)."""
     path = Path(getattr(detector, "weights_path", None) or dope_weights_path(input_mode, weights))
     if not path.exists():
         raise PerceptionCacheError(f"{path}: no DOPE weights for input {input_mode!r} (train them with "
@@ -491,6 +492,11 @@ def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
 
         colour = default_colour_model_path()
         ident += f":colour{file_sha256(colour, 12) if colour.exists() else 'none'}"
+    from stack.dope_fpr import effective_precision
+
+    precision = getattr(detector, "precision", None) or effective_precision()
+    if precision != "fp32":
+        ident += f":{precision}"
     return ident
 
 

@@ -28,3 +28,23 @@ def test_torch_threads_from_the_environment(monkeypatch):
             DopeDetector(input="rgb", dims={"E": (0.1, 0.14, 0.035)})
     finally:
         torch.set_num_threads(before)
+
+
+def test_precision_is_checked_and_falls_back_to_fp32_without_native_bfloat16(monkeypatch):
+    import torch
+
+    import stack.dope_fpr as dope_fpr
+    from stack.config import DetectorConfig
+
+    dims = {"E": (0.1, 0.14, 0.035)}
+    with pytest.raises(ValueError, match="precision"):
+        DopeDetector(input="rgb", dims=dims, precision="fp16")
+    monkeypatch.setattr(dope_fpr, "bf16_native", lambda device="cpu": False)
+    det = DopeDetector(input="rgb", dims=dims, precision="bf16")
+    assert det.precision == "fp32" and next(det.model.parameters()).dtype == torch.float32
+    monkeypatch.setattr(dope_fpr, "bf16_native", lambda device="cpu": True)
+    det = DopeDetector(input="rgb", dims=dims, precision="bf16")
+    assert det.precision == "bf16" and next(det.model.parameters()).dtype == torch.bfloat16
+    assert DetectorConfig(precision="bf16").dope_kwargs()["precision"] == "bf16"
+    with pytest.raises(Exception, match="precision"):
+        DetectorConfig(precision="int4")

@@ -134,6 +134,15 @@ def test_real_detector_identity_changes_with_weights_thresholds_and_colour_model
     assert len({a, b, c, d}) == 4
     assert "rule" in a and "colour" in a
 
+    class Fp32:
+        precision = "fp32"
+
+    class Bf16:
+        precision = "bf16"
+
+    e, f = dope_detector_id("rgb", w, Fp32()), dope_detector_id("rgb", w, Bf16())
+    assert f == e + ":bf16" and d in (e, f)  # bf16 maps are another cache; fp32 caches keep their identity
+
 
 def test_policy_table_warns_when_object_slots_run_out():
     """A map with more candidate objects than slots drops detections: the table says so."""
