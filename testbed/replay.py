@@ -180,12 +180,13 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                fpr: bool = True, weights=None, policy: str = "robust-mean", topics: BagTopics | None = None,
                dope_every: int = 1, parallel: bool = True, write_outputs: bool = True,
                results_bag=None, keep_detections: bool = False, loop_closure: bool = False,
-               vocabulary=None, odometry=None, odometry_only: bool = False) -> dict:
+               vocabulary=None, odometry=None, odometry_only: bool = False, odometry_config=None) -> dict:
     """Run the stack's pipeline over a bag; returns the report (written to OUT/report.json).
 
     ``detector``: any :class:`stack.interfaces.Detector` (default: DOPE + FPR for ``input_mode``,
     ``stages``, ``fpr``, ``weights``). ``odometry``: an :class:`stack.interfaces.Odometry`, or a
-    name for :func:`stack.interfaces.load_odometry` (default: KISS-ICP). ``parallel``: the detector
+    name for :func:`stack.interfaces.load_odometry` (default: KISS-ICP, with ``odometry_config``, a
+    :class:`stack.lidar_slam.LidarOdometryConfig`, or the defaults). ``parallel``: the detector
     runs on a second reader in a thread, ahead of the pipeline (else in the message loop).
     ``loop_closure``: the loop closer rides along (key frames from the colour images, scans); the
     corrected trajectory then places the labels, and replaces the odometry's in the outputs (the
@@ -193,8 +194,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     LiDAR (and wheel odometry) only: no images are read and no detector runs; the trajectory, the
     LiDAR map and an empty object store come out."""
     from sim.objects import load_catalog
-    from stack.interfaces import load_odometry
-    from testbed.run import detector_name, make_detector
+    from testbed.run import detector_name, make_detector, make_odometry
 
     topics = topics or BagTopics()
     out = Path(out_dir)
@@ -218,8 +218,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             raise TypeError(f"detector {type(detector).__name__} has no detect(frame) method")
         dims = {c: s.dims for c, s in load_catalog().items()}
         truth = BagImageTruth(bag) if bag.topics.get(T.GT_IMAGE_OBJECTS) == "std_msgs/msg/String" else None
-        odom = load_odometry(odometry, bag.T_base_velodyne) if odometry is None or isinstance(odometry, str) \
-            else odometry
+        odom = make_odometry(odometry, bag.T_base_velodyne, odometry_config) \
+            if odometry is None or isinstance(odometry, str) else odometry
 
         lc = None
         if loop_closure:

@@ -163,7 +163,8 @@ def replay(args) -> int:
                                 weights=d.weights, policy=policy, topics=topics, dope_every=d.every,
                                 parallel=not args.sequential, results_bag=args.results_bag,
                                 loop_closure=config.loop_closure.enabled, vocabulary=config.loop_closure.vocabulary,
-                                detector=detector, odometry=c.odometry, odometry_only=args.odometry_only)
+                                detector=detector, odometry=c.odometry, odometry_only=args.odometry_only,
+                                odometry_config=config.odometry)
     except ImportPathError as e:  # the odometry's constructor failed
         print(f"dopeslam replay: --{e}", file=sys.stderr)
         return 2

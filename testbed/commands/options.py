@@ -81,7 +81,8 @@ def config_error(command: str, exc: ConfigError) -> int:
 
 # what dopeslam replay applies of the config (the rest, changed from its default, is refused; [run] is
 # the simulator's and is ignored)
-REPLAY_APPLIES = {"detector", "components", "store.policy", "loop_closure.enabled", "loop_closure.vocabulary", "run"}
+REPLAY_APPLIES = {"detector", "components", "odometry", "store.policy", "loop_closure.enabled",
+                  "loop_closure.vocabulary", "run"}
 
 
 def refuse_unapplied(config, applied: set[str], command: str) -> None:

@@ -334,3 +334,18 @@ def test_odometry_only_replay_reads_no_images(live, replayed, tmp_path):
     ta, tb = tum(replayed["out"] / "estimate_tum.txt"), tum(out / "estimate_tum.txt")
     assert ta.shape == tb.shape
     assert np.abs(ta[:, 1:4] - tb[:, 1:4]).max() < 1e-6
+
+
+def test_replay_applies_the_odometry_settings(live, replayed, tmp_path):
+    """``dopeslam replay --set odometry.KEY=V`` tunes KISS-ICP on a bag: another voxel size gives another
+    trajectory (near the default's), and the run's config.toml keeps the setting."""
+    out = tmp_path / "odo_voxel"
+    proc = subprocess.run([sys.executable, "-m", "testbed.cli", "-q", "replay", str(live["bag"]), "--odometry-only",
+                           "--set", "odometry.voxel_size_m=0.35", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "voxel_size_m = 0.35" in (out / "config.toml").read_text()
+    ta, tb = tum(replayed["out"] / "estimate_tum.txt"), tum(out / "estimate_tum.txt")
+    assert ta.shape == tb.shape
+    d = np.abs(ta[:, 1:4] - tb[:, 1:4]).max()
+    assert 1e-9 < d < 0.2, d

@@ -205,6 +205,7 @@ def test_a_setting_a_command_does_not_apply_is_refused():
     from testbed.commands.options import REPLAY_APPLIES, refuse_unapplied
 
     refuse_unapplied(apply_sets(RunConfig(), {"stages": "3", "policy": "last", "seed": "2"}), REPLAY_APPLIES, "replay")
+    refuse_unapplied(apply_sets(RunConfig(), {"odometry.voxel_size_m": "0.3"}), REPLAY_APPLIES, "replay")
     with pytest.raises(ConfigError, match="key 'evidence.min_observations': dopeslam replay does not apply it"):
         refuse_unapplied(apply_sets(RunConfig(), {"evidence.min_observations": "2"}), REPLAY_APPLIES, "replay")
     with pytest.raises(ConfigError, match="key 'loop_closure.top_k'"):
