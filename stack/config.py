@@ -91,9 +91,9 @@ class DetectorConfig(BaseModel):
         None, description="depth input: [[near, far], ...] m (null: sliding 0.3-1.8 m, 0.3 m wide, 0.1 m overlap)")
     channels_last: bool = Field(True, description="run the network in channels-last memory order (about 15 % faster "
                                 "on a CPU; the maps differ in the last float bits)")
-    precision: Literal["fp32", "bf16"] = Field("bf16", description="the network's arithmetic: bf16 halves its time "
+    precision: Literal["fp32", "bf16"] = Field("fp32", description="the network's arithmetic: bf16 halves its time "
                                                "on a CPU with native bfloat16 (AVX512-BF16, AMX; elsewhere it runs "
-                                               "fp32); belief maps differ from fp32's by up to ~0.02")
+                                               "fp32), and its maps are not always fp32's (docs/speed.md)")
 
     def dope_kwargs(self) -> dict:
         """Keyword arguments of :class:`stack.dope_fpr.DopeDetector` (``dims`` and ``threads`` aside)."""

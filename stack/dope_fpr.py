@@ -72,6 +72,7 @@ MEAN, STD = 0.5, 0.25  # as in training (stack.dope.train)
 
 
 PRECISIONS = ("fp32", "bf16")
+DEFAULT_PRECISION = "fp32"
 
 
 def bf16_native(device="cpu") -> bool:
@@ -85,7 +86,7 @@ def bf16_native(device="cpu") -> bool:
         return False
 
 
-def effective_precision(precision: str = "bf16", device="cpu") -> str:
+def effective_precision(precision: str = DEFAULT_PRECISION, device="cpu") -> str:
     """The precision a detector asked for ``precision`` runs in on ``device``: bf16 only where it is native."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
@@ -418,11 +419,11 @@ class DopeDetector:
     channels_last: run the network with its weights and input in channels-last memory order (on a CPU,
     about 15 % less time per image: docs/speed.md); the maps differ from the default order's in the last
     float bits only.
-    precision: ``"bf16"`` (the default): the network's weights and input in bfloat16, its maps back in
-    float32 for decoding; on a CPU with native bfloat16 (AVX512-BF16 or AMX) it halves the network's time,
-    and the maps differ from fp32's by up to about 0.02 in belief (docs/speed.md has its effect on whole
-    episodes). Where the CPU has no native bfloat16 it runs in fp32 and says so in the log. ``"fp32"``:
-    float32 throughout. :attr:`precision` is what runs.
+    precision: ``"fp32"`` (the default): float32 throughout. ``"bf16"``: the network's weights and input
+    in bfloat16, its maps back in float32 for decoding; on a CPU with native bfloat16 (AVX512-BF16 or AMX)
+    it halves the network's time, and the maps differ from fp32's by up to about 0.02 in belief
+    (docs/speed.md has its effect on whole maps: faster, and not always the same labels). Where the CPU
+    has no native bfloat16 it runs in fp32 and says so in the log. :attr:`precision` is what runs.
     """
 
     def __init__(self, weights=None, input: str = "rgb", stages: int = 6, fpr: bool = True, dims: dict | None = None,
@@ -433,7 +434,7 @@ class DopeDetector:
                  colour=None, colour_margin: float = 0.0, min_colour_brightness: float = 20.0,
                  window_min_pixels: int = WINDOW_MIN_PIXELS, shape_check: bool = True,
                  shape_min_residual_m: float = 0.006, shape_ratio: float = 1.5, channels_last: bool = True,
-                 precision: str = "bf16"):
+                 precision: str = DEFAULT_PRECISION):
         if input not in ("rgb", "depth"):
             raise ValueError(f"input must be 'rgb' or 'depth', got {input!r}")
         if not dims:

@@ -475,7 +475,7 @@ def load_or_build(spec: PerceptionSpec, detector_factory: DetectorFactory | None
 def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
     """Identity of the real DOPE detector: input, hashes of its weights, FPR thresholds and colour-model
     files, the version of the FPR rule (the FPR verdicts are part of the cached perception), and the
-    network's precision when it is not fp32 (fp32 caches keep their identity)."""
+    network's precision when it is not fp32 (fp32 caches keep the identity they had before the setting)."""
     path = Path(getattr(detector, "weights_path", None) or dope_weights_path(input_mode, weights))
     if not path.exists():
         raise PerceptionCacheError(f"{path}: no DOPE weights for input {input_mode!r} (train them with "

@@ -126,7 +126,7 @@ def test_the_detector_process_gives_the_same_detections(input_mode):
 
 @pytest.mark.slow
 def test_bf16_finds_the_objects_fp32_finds():
-    """``precision="bf16"`` (the default, on a CPU with native bfloat16) against fp32 on four rendered
+    """``precision="bf16"`` (on a CPU with native bfloat16) against the default fp32 on four rendered
     objects: the same detections (classes, FPR verdicts), positions within 2 cm of each other, and the
     object in view found and passed; the belief maps within 0.05 of fp32's."""
     from stack.dope_fpr import bf16_native
@@ -136,7 +136,7 @@ def test_bf16_finds_the_objects_fp32_finds():
     for cls, distance in (("E", 0.8), ("Mustard", 0.9), ("Yogurt", 0.8), ("Raisins", 0.8)):
         frame, _, dims = _render(cls, distance)
         fp32 = DopeDetector(input="rgb", stages=6, fpr=True, dims=dims, precision="fp32")
-        bf16 = DopeDetector(input="rgb", stages=6, fpr=True, dims=dims)
+        bf16 = DopeDetector(input="rgb", stages=6, fpr=True, dims=dims, precision="bf16")
         assert bf16.precision == "bf16"
         x, _ = fp32._inputs(frame)
         (b32, _), (b16, _) = fp32._forward(x, 6)[-1], bf16._forward(x, 6)[-1]
