@@ -177,8 +177,7 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
             if precision is not None:  # the shipped config with the network's precision set
                 from testbed.settings import RunConfig
 
-                config = RunConfig()
-                config.detector.precision = precision
+                config = RunConfig(detector={"precision": precision})
             r = run_episode(scenario, out_dir=tmp, seed=seed, duration=duration, write_outputs=False, profile=profile,
                             sequential=True, config=config)  # one stage at a time: the meter's CPU deltas are each stage's own
             cpu, wall = time.process_time() - c0, time.perf_counter() - w0

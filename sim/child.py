@@ -33,3 +33,17 @@ def stop_child(proc, replies, shm) -> None:
     if shm is not None:
         shm.close()
         shm.unlink()
+
+
+class ChildOwner:
+    """``close()`` (and the same when collected) for an object that keeps its child process in
+    ``_proc``, the child's reply pipe in ``_replies`` and the shared memory it created in ``_shm``:
+    :func:`stop_child` on them, once."""
+
+    def close(self) -> None:
+        proc, replies, shm = (getattr(self, k, None) for k in ("_proc", "_replies", "_shm"))
+        self._proc = self._replies = self._shm = None
+        stop_child(proc, replies, shm)
+
+    def __del__(self):
+        self.close()

@@ -12,6 +12,7 @@ import pkgutil
 import numpy as np
 import pybullet as p
 
+from sim.child import ChildOwner, package_env
 from stack.messages import CameraInfo
 
 log = logging.getLogger(__name__)
@@ -90,7 +91,7 @@ _REQUEST = np.dtype([("T_world_cam", "<f8", (4, 4)), ("T_world_base", "<f8", (4,
                      ("seed", "<u8"), ("noise", "u1")])
 
 
-class RenderWorker:
+class RenderWorker(ChildOwner):
     """Renders D435i frames in a child process that holds the same static world and a copy of the robot.
 
     PyBullet keeps the GIL while it renders, so a thread cannot overlap rendering with the physics and
@@ -105,8 +106,6 @@ class RenderWorker:
         import subprocess
         import sys
         from multiprocessing import shared_memory
-
-        from sim.child import package_env
 
         self.info = info
         H, W = info.height, info.width
@@ -157,16 +156,6 @@ class RenderWorker:
         self._expect_reply()
         rgb, depth, seg = _views(self._shm.buf, self.info, copy=True)
         return rgb, depth, seg if self.segmentation else None
-
-    def close(self) -> None:
-        from sim.child import stop_child
-
-        proc, replies, shm = (getattr(self, k, None) for k in ("_proc", "_replies", "_shm"))
-        self._proc = self._replies = self._shm = None
-        stop_child(proc, replies, shm)  # end of requests: the worker exits
-
-    def __del__(self):
-        self.close()
 
 
 def _views(buf, info: CameraInfo, copy: bool):

@@ -19,7 +19,7 @@ from multiprocessing import shared_memory
 
 import numpy as np
 
-from sim.child import package_env, stop_child
+from sim.child import ChildOwner, package_env
 from stack.messages import CameraFrame, CameraInfo, Detection
 
 
@@ -89,7 +89,7 @@ class _Pending:
         return False
 
 
-class DetectionProcess:
+class DetectionProcess(ChildOwner):
     """A DOPE detector (:class:`stack.dope_fpr.DopeDetector` built from ``kwargs``) in a child process.
 
     ``submit(frame)`` copies the frame into a free slot and returns at once; jobs are done in order,
@@ -177,14 +177,6 @@ class DetectionProcess:
         while token not in self._done:
             self._collect_one()
         return self._done.pop(token)
-
-    def close(self) -> None:
-        proc, replies, shm = (getattr(self, k, None) for k in ("_proc", "_replies", "_shm"))
-        self._proc = self._replies = self._shm = None
-        stop_child(proc, replies, shm)  # end of jobs: the child exits
-
-    def __del__(self):
-        self.close()
 
 
 def build_detector(kwargs: dict, threads: int | None):
