@@ -123,20 +123,40 @@ def file_sha256(path) -> str:
 
 # --- peaks, association, PnP --------------------------------------------------------------------
 
+def local_maxima(maps: np.ndarray, threshold: float) -> np.ndarray:
+    """Where each 2D map of ``maps`` (..., h, w) has a local maximum (3x3) above ``threshold``: bool, same shape."""
+    size = (1,) * (maps.ndim - 2) + (3, 3)
+    return (maps == maximum_filter(maps, size=size, mode="constant", cval=-np.inf)) & (maps > threshold)
+
+
 def find_peaks(belief: np.ndarray, threshold: float, smooth_sigma: float = 0.0) -> list[tuple[int, int, float]]:
     """Local maxima (3x3) of a 2D map above ``threshold``: [(row, col, value)], strongest first."""
     m = belief
     if smooth_sigma > 0:
         m = cv2.GaussianBlur(belief.astype(np.float32), (0, 0), smooth_sigma)
-    peaks = (m == maximum_filter(m, size=3, mode="constant", cval=-np.inf)) & (m > threshold)
-    rows, cols = np.nonzero(peaks)
-    vals = m[rows, cols]
-    out: list[tuple[int, int, float]] = []
-    for i in np.argsort(-vals, kind="stable"):
-        r, c = int(rows[i]), int(cols[i])
-        if any(abs(r - q[0]) <= 1 and abs(c - q[1]) <= 1 for q in out):
+    return [q[:3] for q in map_peaks(m[None], threshold, refine=False)[0]]
+
+
+def map_peaks(maps: np.ndarray, threshold: float, belief: np.ndarray | None = None,
+              refine: bool = True) -> list[list[tuple]]:
+    """The peaks of each map of ``maps`` (n, h, w), as :func:`find_peaks` finds them (a plateau once,
+    strongest first): per map [(row, col, value, x, y)], (x, y) refined by :func:`refine_peak` on
+    ``belief`` (default: the maps themselves; without ``refine``, (row, col, value) only). All maps'
+    peaks are found, and refined, in one pass."""
+    out: list[list[tuple]] = [[] for _ in range(len(maps))]
+    mi, rows, cols = np.nonzero(local_maxima(maps, threshold))
+    if len(mi) == 0:
+        return out
+    vals = maps[mi, rows, cols]
+    for i in np.lexsort((-vals, mi)):  # per map, strongest first; ties in row-major order
+        k, r, c = int(mi[i]), int(rows[i]), int(cols[i])
+        if any(abs(r - q[0]) <= 1 and abs(c - q[1]) <= 1 for q in out[k]):
             continue  # a plateau (equal neighbours) is one peak
-        out.append((r, c, float(vals[i])))
+        out[k].append((r, c, float(vals[i])))
+    if refine:  # every map has a peak kept here
+        found = [(k, q[0], q[1]) for k, peaks in enumerate(out) for q in peaks]
+        xy = iter(refine_peaks(maps if belief is None else belief, *zip(*found)))
+        out = [[q + next(xy) for q in peaks] for peaks in out]
     return out
 
 
@@ -152,6 +172,28 @@ def refine_peak(belief: np.ndarray, row: int, col: int, r: int = 1) -> tuple[flo
     return float((win * xx).sum() / s), float((win * yy).sum() / s)
 
 
+def refine_peaks(maps: np.ndarray, index, rows, cols, r: int = 1) -> list[tuple[float, float]]:
+    """:func:`refine_peak` of ``maps[index[i]]`` at (rows[i], cols[i]) for each i, the same bits: the
+    windows that lie inside their map in one pass (each window summed on its own, in the same order)."""
+    index, rows, cols = (np.asarray(v, dtype=np.intp) for v in (index, rows, cols))
+    out: list[tuple[float, float] | None] = [None] * len(rows)
+    h, w = maps.shape[1:]
+    inner = np.nonzero((rows >= r) & (rows < h - r) & (cols >= r) & (cols < w - r))[0]
+    if len(inner):
+        ri, ci = rows[inner], cols[inner]
+        off = np.arange(-r, r + 1, dtype=np.intp)
+        yy = np.repeat(ri[:, None] + off, 2 * r + 1, axis=1)  # row-major window order, as np.mgrid's
+        xx = np.tile(ci[:, None] + off, (1, 2 * r + 1))
+        win = np.clip(maps[index[inner][:, None], yy, xx], 0, None).astype(np.float64)
+        s, sx, sy = win.sum(axis=1), (win * xx).sum(axis=1), (win * yy).sum(axis=1)
+        for j, i in enumerate(inner):
+            out[i] = (float(ci[j]), float(ri[j])) if s[j] <= 1e-12 else (float(sx[j] / s[j]), float(sy[j] / s[j]))
+    for i in range(len(rows)):
+        if out[i] is None:
+            out[i] = refine_peak(maps[index[i]], int(rows[i]), int(cols[i]), r)
+    return out
+
+
 @dataclass
 class RawObject:
     """Key points of one object instance found in one class's maps (output-grid coordinates)."""
@@ -161,28 +203,33 @@ class RawObject:
 
 
 def associate(belief: np.ndarray, affinity: np.ndarray, peak_threshold: float = 0.1,
-              angle_threshold: float = 0.5, smooth_sigma: float = 0.0, min_corners: int = 4) -> list[RawObject]:
+              angle_threshold: float = 0.5, smooth_sigma: float = 0.0, min_corners: int = 4,
+              peaks: list | None = None) -> list[RawObject]:
     """Group corner peaks to centroid peaks via the affinity fields (one class: belief (9,h,w), affinity (16,h,w)).
 
     A corner joins the centroid whose direction from the corner is within ``angle_threshold`` radians
     of the corner's affinity vector; among those, the nearest in angle (ties: nearer in distance).
     Per centroid and corner the strongest peak is kept. Objects with fewer than ``min_corners``
-    corners are dropped.
+    corners are dropped. ``peaks``: :func:`map_peaks` of the 9 maps (smoothed by ``smooth_sigma``
+    when it is above 0, refined on ``belief``), when the caller has them already.
     """
-    centres = find_peaks(belief[8], peak_threshold, smooth_sigma)
-    if not centres:
+    if peaks is None:
+        maps = belief
+        if smooth_sigma > 0:
+            maps = np.stack([cv2.GaussianBlur(m.astype(np.float32), (0, 0), smooth_sigma) for m in belief])
+        peaks = map_peaks(maps, peak_threshold, belief)
+    if not peaks[8]:
         return []
     objs = []
-    for r, c, v in centres:
+    for r, c, v, x, y in peaks[8]:
         pts = np.full((9, 2), np.nan)
         sc = np.zeros(9)
-        pts[8] = refine_peak(belief[8], r, c)
+        pts[8] = (x, y)
         sc[8] = v
         objs.append((pts, sc))
     cpos = np.array([o[0][8] for o in objs])
     for k in range(8):
-        for r, c, v in find_peaks(belief[k], peak_threshold, smooth_sigma):
-            x, y = refine_peak(belief[k], r, c)
+        for r, c, v, x, y in peaks[k]:
             vec = affinity[2 * k:2 * k + 2, r, c].astype(np.float64)
             nv = np.linalg.norm(vec)
             d = cpos - np.array([x, y])
@@ -241,6 +288,31 @@ def solve_pose(keypoints_px: np.ndarray, dims, K: np.ndarray) -> tuple[np.ndarra
     T[:3, :3] = cv2.Rodrigues(rvec)[0]
     T[:3, 3] = tvec.ravel()
     return T, err
+
+
+def silhouette_crop(dims, T_cam_obj: np.ndarray, K, width: int, height: int) -> tuple[tuple[int, int], np.ndarray] | None:
+    """A cuboid's silhouette (the convex hull of its 8 projected corners) within its bounding box in a
+    ``width`` x ``height`` image: ((row, col) of the box, boolean mask of the box), the same pixels as
+    drawing it into the whole image; None when it misses the image or reaches behind the camera."""
+    P = cuboid_points(dims)[:8]
+    Xc = P @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    if np.any(Xc[:, 2] <= 1e-3):
+        return None
+    uv = Xc @ np.asarray(K, dtype=float).T
+    uv = uv[:, :2] / uv[:, 2:]
+    hull = cv2.convexHull(np.round(uv).astype(np.int32))
+    lo, hi = hull.reshape(-1, 2).min(axis=0), hull.reshape(-1, 2).max(axis=0)
+    if np.any(np.abs(np.concatenate([lo, hi])) > 1 << 20):  # far outside: drawn into the whole image
+        mask = np.zeros((height, width), np.uint8)
+        cv2.fillConvexPoly(mask, hull, 1)
+        return (0, 0), mask.astype(bool)
+    x0, y0 = max(0, int(lo[0])), max(0, int(lo[1]))
+    x1, y1 = min(width, int(hi[0]) + 1), min(height, int(hi[1]) + 1)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.fillConvexPoly(mask, hull - np.array([x0, y0], dtype=np.int32), 1)
+    return (y0, x0), mask.astype(bool)
 
 
 # --- FPR -----------------------------------------------------------------------------------------
@@ -547,6 +619,7 @@ class DopeDetector:
         refine_later = self.depth_refine and frame.depth_m is not None
         W, H = frame.info.width, frame.info.height
         sx, sy = W / self.input_size[0], H / self.input_size[1]
+        peaks = map_peaks(belief, self.peak_threshold)  # every class's maps in one pass
         for ci, cls in enumerate(self.classes):
             if cls not in self.dims:
                 continue
@@ -555,7 +628,8 @@ class DopeDetector:
             if b[8].max() <= self.peak_threshold:
                 continue
             bsum = belief_sum(b)
-            for obj in associate(b, a, self.peak_threshold, self.angle_threshold, min_corners=self.min_corners):
+            for obj in associate(b, a, self.peak_threshold, self.angle_threshold, min_corners=self.min_corners,
+                                 peaks=peaks[ci * N_BELIEF:(ci + 1) * N_BELIEF]):
                 uv_in = to_input_px(obj.points, STRIDE)
                 uv = np.stack([(uv_in[:, 0] + 0.5) * sx - 0.5, (uv_in[:, 1] + 0.5) * sy - 0.5], axis=1)
                 sol = solve_pose(uv, self.dims[cls], frame.info.K)
@@ -607,15 +681,15 @@ class DopeDetector:
 
     def silhouette(self, frame: CameraFrame, det: Detection) -> np.ndarray:
         """Boolean mask of the detected cuboid's projection (convex hull of its 8 corners)."""
-        P = cuboid_points(self.dims[det.cls])[:8]
-        Xc = P @ det.T_cam_obj[:3, :3].T + det.T_cam_obj[:3, 3]
-        mask = np.zeros((frame.info.height, frame.info.width), np.uint8)
-        if np.any(Xc[:, 2] <= 1e-3):
-            return mask.astype(bool)
-        uv = Xc @ np.asarray(frame.info.K, dtype=float).T
-        uv = uv[:, :2] / uv[:, 2:]
-        cv2.fillConvexPoly(mask, cv2.convexHull(np.round(uv).astype(np.int32)), 1)
-        return mask.astype(bool)
+        mask = np.zeros((frame.info.height, frame.info.width), bool)
+        crop = self._silhouette_crop(frame, det)
+        if crop is not None:
+            (y0, x0), inside = crop
+            mask[y0:y0 + inside.shape[0], x0:x0 + inside.shape[1]] = inside
+        return mask
+
+    def _silhouette_crop(self, frame: CameraFrame, det: Detection) -> tuple[tuple[int, int], np.ndarray] | None:
+        return silhouette_crop(self.dims[det.cls], det.T_cam_obj, frame.info.K, frame.info.width, frame.info.height)
 
     def _colour_check(self, frame: CameraFrame, dets: list[Detection]) -> None:
         """Records ``extra['colour']`` for every detection; with FPR on, a failure fails FPR."""
@@ -624,10 +698,13 @@ class DopeDetector:
         for det in dets:
             if det.cls not in self.colour.models:
                 continue
-            mask = self.silhouette(frame, det)
+            crop = self._silhouette_crop(frame, det)
+            if crop is None:
+                continue
+            (y0, x0), mask = crop
             if mask.sum() < 20:
                 continue
-            pix = frame.rgb[mask]
+            pix = frame.rgb[y0:y0 + mask.shape[0], x0:x0 + mask.shape[1]][mask]
             if float(pix.mean()) < self.min_colour_brightness:
                 continue
             hist = colour_names(pix).mean(axis=0)

@@ -83,7 +83,7 @@ def refine_translation(T_cam_obj: np.ndarray, dims, K: np.ndarray, depth_m: np.n
     gate, or a total shift beyond ``max_shift_frac`` of the range.
     """
     T0 = np.asarray(T_cam_obj, dtype=float)
-    depth = np.asarray(depth_m, dtype=np.float64)
+    depth = np.asarray(depth_m)  # read where the silhouette falls, then as float64 (not the whole image)
     if depth.ndim != 2:
         raise ValueError(f"depth_m must be a 2D image, got shape {depth.shape}")
     K = np.asarray(K, dtype=float)
@@ -96,7 +96,7 @@ def refine_translation(T_cam_obj: np.ndarray, dims, K: np.ndarray, depth_m: np.n
         us, vs, z_exp = silhouette_pixels(T, dims, K, depth.shape)
         if len(us) == 0:
             return DepthFit(T0, False, 0.0, 0, 0.0)
-        meas = depth[vs.astype(int), us.astype(int)]
+        meas = depth[vs.astype(int), us.astype(int)].astype(np.float64)
         valid = np.isfinite(meas) & (meas > 0)
         n_valid = int(valid.sum())
         if n_valid < min_pixels:

@@ -244,6 +244,8 @@ class DopeSlamLabellingEnv(gym.Env):
             if factory is None and self.build:
                 def factory(ep, spec=spec):
                     return pc.dope_factory(spec.input, self.stages, self.weights)[0](ep)
+
+                factory.images_only = True  # DOPE reads the images alone
             perception = pc.load_or_build(spec, factory if self.build else None, self.cache_dir,
                                           scenario=self.episodes[i][0])
             self._replays[i] = Replay(perception, self.classes, self.stages)

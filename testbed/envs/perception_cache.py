@@ -55,7 +55,9 @@ DEFAULT_THUMB = (160, 120)
 
 DetectorFactory = Callable[[object], object]
 """episode -> detector with ``detect(frame) -> list[Detection]`` (and optionally
-``detect_stages(frame) -> {stage count: list[Detection]}``, every stage count from one pass)."""
+``detect_stages(frame) -> {stage count: list[Detection]}``, every stage count from one pass). A
+factory whose ``images_only`` attribute is true promises a detector that reads only the frames'
+images, never the episode's ground truth: the cache build then renders no segmentation image."""
 
 
 class PerceptionCacheError(RuntimeError):
@@ -374,7 +376,10 @@ def build(spec: PerceptionSpec, detector_factory: DetectorFactory, folder=None, 
     det_cols: dict[str, list] = {k: [] for k in DET_FIELDS}
     det_frame, det_stage = [], []
     jpeg, offsets = [], [0]
-    with Episode(sc, seed=spec.seed, duration=spec.duration, light=spec.light, renderer=spec.renderer) as ep:
+    # the segmentation image is ground truth that only a detector reading the truth needs
+    segmentation = not getattr(detector_factory, "images_only", False)
+    with Episode(sc, seed=spec.seed, duration=spec.duration, light=spec.light, renderer=spec.renderer,
+                 segmentation=segmentation) as ep:
         if ep.sc.name != spec.scenario:
             raise ValueError(f"scenario {ep.sc.name!r} does not match the spec's {spec.scenario!r}")
         live = LivePerception(ep, detector_factory(ep), classes, spec.input, spec.stages)
@@ -530,7 +535,12 @@ def dope_factory(input_mode: str, stages: int, weights=None) -> tuple[DetectorFa
 
     kept = dope_stage_counts(input_mode, stages, weights)
     det = make_detector(input_mode, max(kept), True, weights)
-    return (lambda ep: det), dope_detector_id(input_mode, weights, det), kept
+
+    def factory(ep):
+        return det
+
+    factory.images_only = True  # DOPE reads the images alone
+    return factory, dope_detector_id(input_mode, weights, det), kept
 
 
 def measure_stage_seconds(detector, frame: CameraFrame, stages: tuple, repeats: int = 3) -> dict[str, float]:
