@@ -15,7 +15,9 @@ threads, far less affected by other busy processes than wall time) around each s
 The floors, measured on the same machine and the same data:
 
 - rendering: ``p.getCameraImage`` alone for one frame at the camera's size (no noise, no copies),
-  with and without the segmentation mask, times the camera rate;
+  with and without the segmentation mask, times the camera rate; beside it, the same call at 16x12
+  pixels: what a frame costs whatever its size (PyBullet's EGL renderer draws a 4096x4096 shadow map
+  before every image, and a DIRECT client cannot switch it off);
 - DOPE network: its FLOPs (``torch.utils.flop_counter``) per image at this CPU's measured matmul
   GFLOP/s in the network's precision (a 1024^3 ``torch.mm`` in fp32, or bf16 where the detector runs
   bf16, with the same torch threads), times the images per second;
@@ -98,23 +100,24 @@ def network_flops(detector) -> int:
     return int(fc.get_total_flops())
 
 
-def render_floor(client: int, renderer: int, T_world_cam, info, repeats: int = 5) -> tuple[float, float]:
-    """Best CPU seconds of ``getCameraImage`` alone for one frame: (with segmentation, without)."""
+def render_floor(client: int, renderer: int, T_world_cam, info, repeats: int = 5) -> tuple[float, float, float]:
+    """Best CPU seconds of ``getCameraImage`` alone for one frame: (with segmentation, without, and
+    without at 16x12 pixels: the part of a frame's cost that does not grow with its size)."""
     import pybullet as p
 
     from sim.camera import gl_matrices
 
     view, proj = gl_matrices(T_world_cam, info)
     out = []
-    for flags in (0, p.ER_NO_SEGMENTATION_MASK):
+    for flags, (w, h) in ((0, (info.width, info.height)), (p.ER_NO_SEGMENTATION_MASK, (info.width, info.height)),
+                          (p.ER_NO_SEGMENTATION_MASK, (16, 12))):
         best = float("inf")
         for _ in range(repeats):
             t0 = time.process_time()
-            p.getCameraImage(info.width, info.height, view, proj, renderer=renderer, flags=flags,
-                             physicsClientId=client)
+            p.getCameraImage(w, h, view, proj, renderer=renderer, flags=flags, physicsClientId=client)
             best = min(best, time.process_time() - t0)
         out.append(best)
-    return out[0], out[1]
+    return out[0], out[1], out[2]
 
 
 def kiss_floor(scans, config) -> float:
@@ -191,10 +194,10 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
     det = handles.get("detector")
     floors = {}
     if "floors" in handles:
-        seg, noseg = handles["floors"]
-        floors["rendering"] = (seg * handles["camera_rate"], noseg * handles["camera_rate"])
+        seg, noseg, tiny = (v * handles["camera_rate"] for v in handles["floors"])
+        floors["rendering"] = (seg, noseg, tiny)
         if profile == "fast":  # no segmentation image rendered: its floor is the one without
-            floors["rendering"] = (noseg * handles["camera_rate"], noseg * handles["camera_rate"])
+            floors["rendering"] = (noseg, noseg, tiny)
     if det is not None:
         flops = network_flops(det)
         precision = getattr(det, "precision", "fp32")
@@ -214,15 +217,16 @@ def table(m: dict) -> str:
     fl = m["floors"]
     lines = ["| stage | CPU s / sim s | floor, CPU s / sim s | stage / floor | floor measured as |",
              "|---|---:|---:|---:|---|"]
-    how = {"rendering": "getCameraImage alone, with segmentation (without: {:.3f})" if m.get("profile", "full") == "full"
-           else "getCameraImage alone, without segmentation ({:.3f})",
+    how = {"rendering": ("getCameraImage alone, with segmentation (without: {:.3f}" if m.get("profile", "full") == "full"
+                         else "getCameraImage alone, without segmentation ({:.3f}")
+           + "; {:.3f} of it at any image size: 16x12 pixels cost that)",
            "network": "{flops:.2f} GFLOP per image at {gf:.1f} GFLOP/s ({prec} matmul)",
            "odometry": "KissICP.register_frame on the same sweeps"}
     for st in STAGES:
         v = m["stages"][st] / sim
         f = fl.get(st)
         if isinstance(f, tuple):
-            note, f = how[st].format(f[1]), f[0]
+            note, f = how[st].format(*f[1:]), f[0]
         elif f is not None:
             note = how[st].format(flops=(m["flops"] or 0) / 1e9, gf=m["gflops"] or 0, prec=m.get("precision") or "fp32")
         else:
