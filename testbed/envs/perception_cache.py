@@ -362,10 +362,12 @@ def load(spec: PerceptionSpec, folder=None) -> Perception | None:
 
 def build(spec: PerceptionSpec, detector_factory: DetectorFactory, folder=None, scenario=None,
           progress: bool = True) -> Perception:
-    """Run the episode through the stack and write its perception to the cache."""
+    """Run the episode through the stack and write its perception to the cache. ``progress``: a bar
+    with an ETA (where :mod:`testbed.progress` shows bars) and a log line every 15 s."""
     from sim.episode import Episode
     from sim.objects import load_catalog
     from sim.scenario import load_scenario
+    from testbed.progress import SecondsBar
 
     folder = cache_dir(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -385,7 +387,10 @@ def build(spec: PerceptionSpec, detector_factory: DetectorFactory, folder=None, 
         live = LivePerception(ep, detector_factory(ep), classes, spec.input, spec.stages)
         n_expected = int(round(spec.duration * ep.sc.sensors.camera_rate)) + 1
         last_log = time.perf_counter()
+        bar = SecondsBar(spec.duration, f"caching {spec.scenario} seed {spec.seed}") if progress else None
         for ff in live.frames():
+            if bar is not None:
+                bar.update_to(ff.stamp, frames=ff.index + 1)
             frame_stamp.append(ff.stamp)
             frame_T_est.append(np.full((4, 4), np.nan) if ff.T_map_base is None else ff.T_map_base)
             frame_T_true.append(ff.T_world_base)
@@ -407,6 +412,8 @@ def build(spec: PerceptionSpec, detector_factory: DetectorFactory, folder=None, 
                 last_log = time.perf_counter()
                 log.info("caching %s seed %d: frame %d of ~%d (%.0f s)", spec.scenario, spec.seed, ff.index + 1,
                          n_expected, last_log - wall0)
+        if bar is not None:
+            bar.close()
         traj_stamp, traj_T = live.odom.trajectory()
         if len(traj_stamp) == 0:
             raise PerceptionCacheError(f"{spec.scenario} seed {spec.seed}: the odometry registered no scan")

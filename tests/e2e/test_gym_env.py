@@ -338,6 +338,40 @@ def test_real_dope_detector_path_caches_every_stage_count(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_dope_cache_build_renders_no_segmentation_and_shows_an_eta(tmp_path, monkeypatch, capsys):
+    """DOPE reads only the images, so its cache build renders no segmentation image; a factory that
+    does not say so (one reading the ground truth) keeps it. The build's bar has an ETA."""
+    import torch
+
+    from sim.episode import Episode
+    from stack.dope.net import DopeNet, DopeNetConfig, save_weights
+    from testbed import progress
+
+    torch.manual_seed(0)
+    weights = tmp_path / "w" / "dope_rgb.pt"
+    save_weights(weights, DopeNet(DopeNetConfig(width=0.125, stages=2)))
+    seen, init = [], Episode.__init__
+
+    def recording_init(self, *a, **kw):
+        seen.append(kw.get("segmentation", True))
+        init(self, *a, **kw)
+
+    monkeypatch.setattr(Episode, "__init__", recording_init)
+    monkeypatch.setenv("DOPESLAM_PROGRESS", "1")
+    monkeypatch.setattr(progress, "_quiet", False)
+    factory, det_id, kept = pc.dope_factory("rgb", 2, str(weights))
+    assert factory.images_only
+    pc.build(pc.make_spec(SCENE, 0, 0.6, None, "rgb", kept, det_id, renderer="tiny"), factory, tmp_path / "a",
+             scenario=SCENE)
+    assert seen == [False]
+    err = capsys.readouterr().err
+    assert "caching labelling_small seed 0" in err and "0.6/0.6 s" in err
+    pc.build(pc.make_spec(SCENE, 0, 0.6, None, "rgb", kept, "other", renderer="tiny"), lambda ep: factory(ep),
+             tmp_path / "b", scenario=SCENE)
+    assert seen == [False, True]
+
+
+@pytest.mark.slow
 def test_prebuild_builds_episode_caches_through_the_matrix_runner(tmp_path, monkeypatch):
     """evaluate-policy's cache builds: two episodes with the real detector in worker processes; the
     environment then reads both without a detector, and a second prebuild resumes (builds nothing)."""
