@@ -153,7 +153,7 @@ def map_peaks(maps: np.ndarray, threshold: float, belief: np.ndarray | None = No
         if any(abs(r - q[0]) <= 1 and abs(c - q[1]) <= 1 for q in out[k]):
             continue  # a plateau (equal neighbours) is one peak
         out[k].append((r, c, float(vals[i])))
-    if refine:  # every map has a peak kept here
+    if refine:  # at least one peak was kept (each map with a candidate keeps its strongest)
         found = [(k, q[0], q[1]) for k, peaks in enumerate(out) for q in peaks]
         xy = iter(refine_peaks(maps if belief is None else belief, *zip(*found)))
         out = [[q + next(xy) for q in peaks] for peaks in out]
@@ -679,18 +679,6 @@ class DopeDetector:
                 det.fpr_pass = False
                 det.extra["fpr_rejected_by"] = "depth"
 
-    def silhouette(self, frame: CameraFrame, det: Detection) -> np.ndarray:
-        """Boolean mask of the detected cuboid's projection (convex hull of its 8 corners)."""
-        mask = np.zeros((frame.info.height, frame.info.width), bool)
-        crop = self._silhouette_crop(frame, det)
-        if crop is not None:
-            (y0, x0), inside = crop
-            mask[y0:y0 + inside.shape[0], x0:x0 + inside.shape[1]] = inside
-        return mask
-
-    def _silhouette_crop(self, frame: CameraFrame, det: Detection) -> tuple[tuple[int, int], np.ndarray] | None:
-        return silhouette_crop(self.dims[det.cls], det.T_cam_obj, frame.info.K, frame.info.width, frame.info.height)
-
     def _colour_check(self, frame: CameraFrame, dets: list[Detection]) -> None:
         """Records ``extra['colour']`` for every detection; with FPR on, a failure fails FPR."""
         if not self.colour_check or frame.rgb is None:
@@ -698,7 +686,8 @@ class DopeDetector:
         for det in dets:
             if det.cls not in self.colour.models:
                 continue
-            crop = self._silhouette_crop(frame, det)
+            crop = silhouette_crop(self.dims[det.cls], det.T_cam_obj, frame.info.K, frame.info.width,
+                                   frame.info.height)
             if crop is None:
                 continue
             (y0, x0), mask = crop
