@@ -13,13 +13,14 @@ would add to that signal:
   (sigma_z = z^2 * subpixel / (fx * baseline)), plus the random dropouts' binary entropy per pixel;
 - LiDAR (``PointCloud2``, float32 x, y, z): per return, the entropy of the Gaussian range noise at
   the resolution of float32 at that point's largest coordinate; ring, time and intensity carry
-  no noise.
+  no noise. With ``--lidar packets`` (the VLP-32C's data packets, ``stack.velodyne``): per return,
+  the entropy of the range noise rounded to the sensor's 4 mm steps.
 
 Printed beside each floor: the bytes per message our recorder writes for that topic (PNG colour,
 compressedDepth PNG, PointCloud2; before the MCAP chunks' zstd), measured on a bag of the same
 episode, and both scaled to a 60 s bag.
 
-    python benchmarks/bench_bag_floor.py [--duration 10] [--seed 0]
+    python benchmarks/bench_bag_floor.py [--duration 10] [--seed 0] [--lidar points|packets]
 """
 from __future__ import annotations
 
@@ -77,7 +78,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=10.0, help="simulated seconds (default 10)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--lidar", choices=["points", "packets"], default="points",
+                    help="the LiDAR topic recorded: PointCloud2 (default) or the VLP-32C's packets")
     args = ap.parse_args(argv)
+    packets = args.lidar == "packets"
 
     from rosbags.highlevel import AnyReader
 
@@ -96,6 +100,7 @@ def main(argv=None) -> int:
 
     sc = load_scenario(None)
     sc.sensors.noise = False  # the signals; the noise's entropy is computed from the models
+    sc.sensors.lidar_packets = packets
     floor = Counter()
     n_msgs = Counter()
     with Episode(sc, seed=args.seed, duration=args.duration, segmentation=False) as ep:
@@ -111,6 +116,12 @@ def main(argv=None) -> int:
                 floor["depth"] += (float(rounded_gaussian_bits(sigma_mm).sum()) + drop_bits * msg.depth_m.size) / 8
                 n_msgs["colour"] += 1
                 n_msgs["depth"] += 1
+            elif isinstance(msg, LidarScan) and packets:
+                from stack.velodyne import VLP32C
+
+                sigma_steps = np.full(len(msg.points), range_sigma / VLP32C.distance_resolution)
+                floor["lidar"] += float(rounded_gaussian_bits(sigma_steps).sum()) / 8
+                n_msgs["lidar"] += 1
             elif isinstance(msg, LidarScan):
                 pts = np.abs(msg.points.astype(np.float32))
                 ulp = np.spacing(pts.max(axis=1))
@@ -120,7 +131,7 @@ def main(argv=None) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         bag = Path(tmp) / "bag"
-        rec = record_episode(None, bag, seed=args.seed, duration=args.duration)
+        rec = record_episode(None, bag, seed=args.seed, duration=args.duration, lidar=args.lidar)
         written = Counter()
         counts = Counter()
         with AnyReader([bag]) as reader:
@@ -129,7 +140,7 @@ def main(argv=None) -> int:
                 counts[conn.topic] += 1
         bag_bytes = rec["bytes"]
     topic_of = {"colour": next(t for t in written if t.startswith(T.RGB) and "info" not in t),
-                "depth": next(t for t in written if t.startswith(T.DEPTH) and "info" not in t), "lidar": T.LIDAR}
+                "depth": next(t for t in written if t.startswith(T.DEPTH) and "info" not in t), "lidar": T.LIDAR_PACKETS if packets else T.LIDAR}
     per60 = 60.0 / sim_s
     print(f"default episode, seed {args.seed}, {sim_s:g} s; noise floor from the sensor models; written = our "
           f"recorder's message bytes (before the MCAP chunks' zstd); the whole bag: {bag_bytes / 1e6:.0f} MB "

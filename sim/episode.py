@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from sim.camera import RenderWorker, default_camera_info, new_client, render_rgbd
 from sim.events import WorldEvents
-from sim.lidar import BeamPattern, BoxRayCaster
+from sim.lidar import BeamPattern, BoxRayCaster, PacketLayout
 from sim.objects import cuboid_keypoints
 from sim.robot import Jackal
 from sim.scenario import Scenario, ScenarioError, load_scenario, with_overrides
@@ -230,13 +230,15 @@ class Episode:
     def __init__(self, scenario: Scenario | str | None = None, seed: int | None = None,
                  duration: float | None = None, light: float | None = None, renderer: str = "auto",
                  camera: bool | None = None, lidar: bool | None = None, render_worker: bool | None = None,
-                 camera_rate: float | None = None, segmentation: bool = True):
+                 camera_rate: float | None = None, segmentation: bool = True, lidar_packets: bool | None = None):
         """``render_worker``: render the camera in a second process (``sim.camera.RenderWorker``) so the
         rendering overlaps the physics, the LiDAR and whatever consumes the frames; the frames and
         their order are the same either way. None: as the environment variable DOPESLAM_RENDER_WORKER
         says (1 = on), else off. ``camera_rate``: the camera's rate in Hz in place of the scenario's
         ``[sensors] camera_rate``. ``segmentation=False``: frames carry no segmentation image (cheaper
-        to render; ``image_truth`` then gives no visible fraction and ``occluder_fraction`` is 0)."""
+        to render; ``image_truth`` then gives no visible fraction and ``occluder_fraction`` is 0).
+        ``lidar_packets``: the Velodyne publishes VLP-32C data packets (``stack.velodyne``) and each
+        sweep is their decoding, in place of the scenario's ``[sensors] lidar_packets``."""
         self.sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         with_overrides(self.sc, seed=seed, duration=duration, light=light)  # checked as the file is: ScenarioError
         if camera_rate is not None and not 0.0 < float(camera_rate) <= 60.0:
@@ -250,6 +252,7 @@ class Episode:
         s = self.sc.sensors
         self.use_camera = s.camera if camera is None else camera
         self.use_lidar = s.lidar if lidar is None else lidar
+        self.lidar_packets = bool(s.lidar_packets if lidar_packets is None else lidar_packets)
         self.camera_info = default_camera_info(s.camera_width, s.camera_height)
         if render_worker is None:
             render_worker = os.environ.get("DOPESLAM_RENDER_WORKER", "0") == "1"
@@ -272,6 +275,7 @@ class Episode:
         self.robot = Jackal(self.client, (x, y, math.radians(yaw_deg)), self.rng_odom)
         self.caster = BoxRayCaster(self.world.boxes)
         self.beams = BeamPattern.from_hardware(s.lidar_azimuth_steps, s.lidar_rate)
+        self.packet_layout = PacketLayout(self.beams) if self.lidar_packets else None
         self.follower = RouteFollower(self.sc)
         self.groundtruth = GroundTruth()
         self.T_world_map: np.ndarray | None = None
@@ -356,9 +360,10 @@ class Episode:
         cam_every = max(1, int(round(1.0 / (self.camera_rate * self.dt))))
         odo_every = max(1, int(round(1.0 / (s.wheel_odometry_rate * self.dt))))
         sweep_steps = max(1, int(round(self.beams.period / self.dt)))
-        dirs = self.beams.directions()
-        col_t = self.beams.column_times()
-        az = self.beams.azimuths()
+        pattern = self.packet_layout or self.beams
+        dirs = pattern.directions()
+        col_t = pattern.column_times()
+        az = pattern.azimuths()
         worker = self._render_worker
         in_flight = None  # (t, T_world_cam, ground-truth rows) of the frame the render worker is drawing
         held = []  # (message, ground-truth rows) after that frame, held back to keep the time order
@@ -426,10 +431,14 @@ class Episode:
         dw = [R[:, i, 0, None] * sx + R[:, i, 1, None] * sy + R[:, i, 2, None] * sz for i in range(3)]
         o = [np.ascontiguousarray(T_ws[:, i, 3, None]) for i in range(3)]
         az_world = az + np.arctan2(R[:, 1, 0], R[:, 0, 0])
-        ranges, hit = self.caster.cast_components(*o, *dw, az_world, self.beams.range_max)
+        layout = self.packet_layout
+        spread = 0.0 if layout is None else layout.model.max_azimuth_offset_rad()
+        ranges, hit = self.caster.cast_components(*o, *dw, az_world, self.beams.range_max, azimuth_spread=spread)
         if self.sc.sensors.noise:
             ranges = ranges + self.rng_lidar.standard_normal(ranges.shape) * self.beams.range_noise
         ok = np.isfinite(ranges) & (ranges >= self.beams.range_min) & (ranges <= self.beams.range_max)
+        if layout is not None:
+            return self._packet_scan(stamp, ranges, hit, ok, T_ws[0].copy())
         A, Rr = ranges.shape
         r_ok = ranges[ok]
         points = np.column_stack([sx[ok] * r_ok, sy[ok] * r_ok, sz[ok] * r_ok])
@@ -441,6 +450,35 @@ class Episode:
             self.lidar_person_points += int(np.isin(hit[ok], list(self.events.person_boxes)).sum())
         return LidarScan(stamp, points.astype(np.float32), times.astype(np.float64), ring.copy(), intensity,
                          "velodyne", T_ws[0].copy())
+
+    def _packet_scan(self, stamp: float, ranges, hit, ok, T_world_sensor: np.ndarray) -> LidarScan:
+        """The sweep as a VLP-32C publishes it: ranges in the sensor's distance steps, reflectivity
+        0-255, packed into its data packets; the scan is their decoding (what replay of a bag of
+        them gives, bit for bit) and carries them."""
+        from stack.velodyne import BLOCKS, build_packets, decode_sweep
+
+        layout = self.packet_layout
+        model = layout.model
+        counts = np.zeros(ranges.shape, dtype=np.int64)
+        counts[ok] = np.rint(ranges[ok] / model.distance_resolution)
+        refl = np.zeros(ranges.shape, dtype=np.int64)
+        refl[ok] = np.clip(np.rint(100.0 * self.caster.refl[hit[ok]]), 0, 255)
+        ring_of_laser = model.ring_of_laser
+        n_blocks = layout.packets * BLOCKS
+        by_block = [np.zeros((n_blocks, counts.shape[1]), dtype=np.int64) for _ in range(2)]
+        by_block[0][: layout.columns] = counts[:, ring_of_laser]  # laser-ID order
+        by_block[1][: layout.columns] = refl[:, ring_of_laser]
+        stamp_ns = int(round(stamp * 1e9))
+        shape = (layout.packets, BLOCKS, counts.shape[1])
+        packets = build_packets(layout.azimuth_centideg, by_block[0].reshape(shape), by_block[1].reshape(shape),
+                                stamp_ns + layout.offsets_ns)
+        scan = decode_sweep(packets, stamp_ns, model)
+        scan.T_world_sensor = T_world_sensor
+        scan.packets = packets
+        self.lidar_points += int(len(scan.points))
+        if self.events is not None and self.events.walkers:
+            self.lidar_person_points += int(np.isin(hit[ok], list(self.events.person_boxes)).sum())
+        return scan
 
     def _camera_frame(self, t: float, T_world_base: np.ndarray) -> CameraFrame:
         T_world_cam = T_world_base @ self._T_base_camera

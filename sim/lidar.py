@@ -43,3 +43,43 @@ class BeamPattern:
         az = self.azimuths()[:, None]
         el = np.radians(self.vertical_deg)[None, :]
         return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], axis=-1)
+
+
+@dataclass
+class PacketLayout:
+    """How a sweep of ``BeamPattern`` fills VLP-32C data packets (``stack.velodyne``): column k is
+    block k % 12 of packet k // 12, at azimuth 180 deg + 360 deg * k / A in the sensor's 0.01 deg
+    (clockwise from the front, the Velodyne's own convention, so column 0 points behind the sensor as
+    in ``BeamPattern.azimuths``); the last packet's unused blocks repeat the last azimuth with no
+    returns. Packet p is stamped 12 p A-th parts of the period after the sweep's stamp (to the ns)."""
+
+    beams: BeamPattern
+
+    def __post_init__(self):
+        from stack.velodyne import BLOCKS, VLP32C
+
+        self.model = VLP32C
+        if sorted(self.model.vertical_deg) != sorted(float(v) for v in self.beams.vertical_deg):
+            raise ValueError("the Velodyne's elevations in hardware.toml are not the VLP-32C's: packets need them")
+        A = self.beams.azimuth_steps
+        self.columns = A
+        self.packets = -(-A // BLOCKS)
+        k = np.minimum(np.arange(self.packets * BLOCKS), A - 1)
+        self.azimuth_centideg = ((18000 + np.rint(36000.0 * k / A).astype(np.int64)) % 36000).reshape(-1, BLOCKS)
+        self.offsets_ns = np.rint(np.arange(self.packets) * BLOCKS * (self.beams.period / A) * 1e9).astype(np.int64)
+
+    def directions(self) -> np.ndarray:
+        """(A, R, 3) unit ray directions in ring order (rings sorted by elevation, as ``BeamPattern``)."""
+        d = self.model.directions(self.azimuth_centideg.reshape(-1)[: self.columns])  # (A, 32, 3) laser order
+        return d[:, self.model.laser_of_ring]
+
+    def azimuths(self) -> np.ndarray:
+        """Column headings (rad, counter-clockwise, sensor frame): the blocks' azimuths."""
+        return -np.radians(self.azimuth_centideg.reshape(-1)[: self.columns] / 100.0)
+
+    def column_times(self) -> np.ndarray:
+        """Each column's firing time after the sweep's stamp: its block's time as the decoder gives it."""
+        from stack.velodyne import BLOCKS
+
+        t = self.offsets_ns[:, None] * 1e-9 + np.arange(BLOCKS) * self.model.firing_period_s
+        return t.reshape(-1)[: self.columns]

@@ -85,15 +85,18 @@ class BoxRayCaster:
         dx, dy, dz = (np.ascontiguousarray(dirs[..., k]) for k in range(3))
         return self.cast_components(ox, oy, oz, dx, dy, dz, azimuth_world, max_range)
 
-    def cast_components(self, ox, oy, oz, dx, dy, dz, azimuth_world=None, max_range: float = 200.0):
-        """``cast`` on split components: origins (A, 1) or (A, R) each, directions (A, R) each."""
+    def cast_components(self, ox, oy, oz, dx, dy, dz, azimuth_world=None, max_range: float = 200.0,
+                        azimuth_spread: float = 0.0):
+        """``cast`` on split components: origins (A, 1) or (A, R) each, directions (A, R) each.
+        ``azimuth_spread`` (rad): how far any ray of a column may head from ``azimuth_world`` besides
+        the sensor's tilt (a sensor whose lasers have azimuth offsets)."""
         A, Rr = dx.shape
         best = np.full((A, Rr), np.inf)
         hit = np.full((A, Rr), -1, dtype=np.int32)
         per_ray = ox.shape[1] > 1
         with np.errstate(divide="ignore", invalid="ignore"):
             inv_dz = 1.0 / dz
-            cols = self._column_slices(ox, oy, dx, dy, dz, azimuth_world)
+            cols = self._column_slices(ox, oy, dx, dy, dz, azimuth_world, azimuth_spread)
             rings = self._ring_slices(ox, oy, oz, dx, dy, dz)
             for b in range(len(self.boxes)):
                 rs = rings[b]
@@ -143,7 +146,7 @@ class BoxRayCaster:
         return tn, tf
 
     # --- culling -----------------------------------------------------------------------------------
-    def _column_slices(self, ox, oy, dx, dy, dz, azimuth_world) -> list[list[slice]]:
+    def _column_slices(self, ox, oy, dx, dy, dz, azimuth_world, azimuth_spread: float = 0.0) -> list[list[slice]]:
         """Per box, the column slices whose rays can reach it (all columns without ``azimuth_world``)."""
         A = dx.shape[0]
         B = len(self.boxes)
@@ -158,6 +161,7 @@ class BoxRayCaster:
         for r in {int(np.argmin(mean_z)), int(np.argmax(mean_z))}:
             d = (np.arctan2(dy[:, r], dx[:, r]) - az + np.pi) % _TWO_PI - np.pi
             stray = max(stray, float(np.abs(d).max()))
+        stray += float(azimuth_spread)  # the lasers' own offsets on top of the tilt (over-estimated: safe)
         rel = self.corners[:, :, :2] - om
         ang = np.arctan2(rel[..., 1], rel[..., 0])
         cen = 0.5 * (self.aabb_lo[:, :2] + self.aabb_hi[:, :2]) - om

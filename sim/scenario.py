@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, ValidationError, field_validator, model_serializer,
+                      model_validator)
 
 from sim.events import Event, check_events
 from sim.faults import Faults
@@ -112,8 +113,20 @@ class Sensors(_Strict):
     lidar: bool = True
     lidar_rate: float = Field(10.0, ge=1.0, le=30.0)
     lidar_azimuth_steps: int = Field(1808, ge=16, le=8192)
+    lidar_packets: bool = Field(False, description="the Velodyne publishes VLP-32C data packets (ranges in 4 mm "
+                                "steps, 0.01 deg block azimuths, the lasers' azimuth offsets) and each sweep is "
+                                "their decoding; a bag records the packets (velodyne_msgs/VelodyneScan)")
     wheel_odometry_rate: float = Field(20.0, gt=0.0, le=200.0)
     noise: bool = True
+
+    @model_serializer(mode="wrap")
+    def _omit_points_lidar(self, handler):
+        """``lidar_packets`` is left out of dumps while off, so a scenario without it dumps (and so
+        hashes: the perception cache's key) as it did before the field existed."""
+        data = handler(self)
+        if isinstance(data, dict) and not self.lidar_packets:
+            data.pop("lidar_packets", None)
+        return data
 
 
 class Scenario(_Strict):

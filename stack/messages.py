@@ -75,6 +75,7 @@ class LidarScan:
     intensity: np.ndarray | None = None  # (N,) float32
     frame_id: str = "velodyne"
     T_world_sensor: np.ndarray | None = None  # ground truth at stamp (simulation / bags with GT only)
+    packets: object | None = None  # the sensor's raw packets where it published them (stack.velodyne.VelodynePackets)
 
 
 @dataclass

@@ -31,7 +31,7 @@ import numpy as np
 
 from stack.messages import CameraFrame, LidarScan, WheelOdometry
 from stack.transforms import voxel_thin
-from testbed.bags import BagWriter, Cuboid, bag_size
+from testbed.bags import BagWriteError, BagWriter, Cuboid, bag_size
 from testbed.bags import topics as T
 
 log = logging.getLogger(__name__)
@@ -217,11 +217,13 @@ class EpisodeRecorder:
 def record_episode(scenario=None, bag: Path | str = "out/episode", format: str | None = None,
                    storage: str = "mcap", seed: int | None = None, duration: float | None = None,
                    light: float | None = None, overwrite: bool = False, compress: bool = True,
-                   faults=(), images: str = "compressed") -> dict:
+                   faults=(), images: str = "compressed", lidar: str | None = None) -> dict:
     """Run an episode (no stack) and write it to ``bag``; returns a summary with the timing.
     ``faults``: ``NAME=VALUE`` sensor faults over the scenario's ``[faults]`` (``sim.faults``): the
     bag holds the messages as the faulty drivers publish them. ``images``: ``compressed`` (lossless PNG
-    CompressedImage topics, ``testbed.bags.images``) or ``raw`` (sensor_msgs/Image)."""
+    CompressedImage topics, ``testbed.bags.images``) or ``raw`` (sensor_msgs/Image). ``lidar``: ``points``
+    (PointCloud2), ``packets`` (the VLP-32C's packets, ``stack.velodyne``: the simulated Velodyne then
+    publishes packets) or None (packets where the scenario's ``[sensors] lidar_packets`` is on)."""
     from sim.faults import FaultInjector, parse_overrides
 
     from sim.episode import Episode
@@ -231,9 +233,12 @@ def record_episode(scenario=None, bag: Path | str = "out/episode", format: str |
     wall0 = time.perf_counter()
     # rendered in this process unless DOPESLAM_RENDER_WORKER=1 (the same bag either way; the writer's
     # thread, which encodes the images, is what a recording waits for: no faster with the worker)
-    with Episode(scenario, seed=seed, duration=duration, light=light,
-                 render_worker=render_worker_wanted(False)) as ep:
-        writer = BagWriter(bag, format, storage, compress=compress, overwrite=overwrite, images=images)
+    if lidar not in (None, "points", "packets"):
+        raise BagWriteError(bag, f"lidar {lidar!r}: expected 'points' or 'packets'")
+    with Episode(scenario, seed=seed, duration=duration, light=light, render_worker=render_worker_wanted(False),
+                 lidar_packets=True if lidar == "packets" else None) as ep:
+        lidar = lidar or ("packets" if ep.lidar_packets else "points")
+        writer = BagWriter(bag, format, storage, compress=compress, overwrite=overwrite, images=images, lidar=lidar)
         with writer:
             rec = EpisodeRecorder(writer, ep)
             last_log = time.perf_counter()

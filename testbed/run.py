@@ -297,8 +297,11 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             or any(e.kind == "walk" for e in scenario.events)
         camera_rate, segmentation = profile_sensors(profile, scenario.sensors.camera_rate, needs)
     wall0 = time.perf_counter()
+    lidar = getattr(getattr(config, "run", None), "lidar", None)
     with Episode(scenario, seed=seed, duration=duration, light=light, camera_rate=camera_rate,
-                 segmentation=segmentation, render_worker=render_worker) as ep, contextlib.ExitStack() as closing:
+                 segmentation=segmentation, render_worker=render_worker,
+                 lidar_packets=None if lidar is None else lidar == "packets") as ep, \
+            contextlib.ExitStack() as closing:
         recorder = None
         if bag_writer is not None:
             from testbed.record import EpisodeRecorder
@@ -397,6 +400,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         labels, labels_summary = score_labels(store, ep.objects, T_world_map)
         report = {
             "scenario": ep.sc.name, "seed": ep.seed, "light": ep.light, "profile": profile,
+            "lidar": "packets" if ep.lidar_packets else "points",
             "camera_rate_hz": ep.camera_rate, "input": input_mode, "stages": stages,
             "fpr": fpr, "policy": policy, "detector": detector_name(detector),
             "network_precision": getattr(detector, "precision", None), "odometry_class": detector_name(odom),

@@ -49,6 +49,10 @@ class RunSection(BaseModel):
         "full", description="full: every sensor at the scenario's rates; fast (for large sweeps): the camera, and so "
                             "DOPE, at half the scenario's camera_rate and no segmentation image rendered, so the "
                             "per-image recall is not scored (what it costs: docs/speed.md)")
+    lidar: Literal["points", "packets"] | None = Field(
+        None, description="points: the Velodyne's sweeps as float points; packets: it publishes VLP-32C data packets "
+                          "(ranges in 4 mm steps, 0.01 deg block azimuths) and each sweep is their decoding, as a "
+                          "real one's (what it costs: docs/speed.md); null: the scenario's [sensors] lidar_packets")
 
 
 class RunConfig(StackConfig):
@@ -56,7 +60,7 @@ class RunConfig(StackConfig):
 
     ALIASES: ClassVar[dict[str, str]] = {**StackConfig.ALIASES, "scenario": "run.scenario", "seed": "run.seed",
                                          "light": "run.light", "duration": "run.duration",
-                                         "profile": "run.profile"}
+                                         "profile": "run.profile", "lidar": "run.lidar"}
 
     run: RunSection = Field(default_factory=RunSection)
 

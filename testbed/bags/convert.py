@@ -25,6 +25,12 @@ Format = Literal["ros1", "ros2"]
 # ROS 1 Noetic's tf2_msgs/TFMessage is missing from rosbags' bundled store; this is its
 # definition (md5 94810edda583a504dfda3829e70d7eec, as rosbag records it).
 _ROS1_TFMESSAGE = "geometry_msgs/TransformStamped[] transforms"
+# velodyne_msgs (the Velodyne driver's raw packets), in each generation's message syntax
+VELODYNE_SCAN = "velodyne_msgs/msg/VelodyneScan"
+VELODYNE_PACKET = "velodyne_msgs/msg/VelodynePacket"
+_VELODYNE_MSGS = {"ros1": ("time stamp\nuint8[1206] data", "Header header\nvelodyne_msgs/VelodynePacket[] packets"),
+                  "ros2": ("builtin_interfaces/Time stamp\nuint8[1206] data",
+                           "std_msgs/Header header\nvelodyne_msgs/VelodynePacket[] packets")}
 
 _BASE_DEFAULTS: dict[str, Any] = {"bool": False, "string": ""}
 _NUMPY_OF_BASE = {"bool": np.bool_, "int8": np.int8, "uint8": np.uint8, "byte": np.uint8,
@@ -44,6 +50,8 @@ class Dialect:
             store = get_typestore(Stores.ROS2_HUMBLE)
         else:
             raise ValueError(f"bag format {fmt!r}: expected 'ros1' or 'ros2'")
+        packet, scan = _VELODYNE_MSGS[fmt]
+        store.register({**get_types_from_msg(packet, VELODYNE_PACKET), **get_types_from_msg(scan, VELODYNE_SCAN)})
         self.format: Format = fmt
         self.typestore = store
 
@@ -207,6 +215,13 @@ def pointcloud2(d: Dialect, stamp_ns: int, frame_id: str, fields: Mapping[str, n
     return d.make("sensor_msgs/msg/PointCloud2", header=d.header(stamp_ns, frame_id), height=1,
                   width=n, fields=point_fields, is_bigendian=False, point_step=offset,
                   row_step=offset * n, data=packed.view(np.uint8).reshape(-1), is_dense=True)
+
+
+def velodyne_scan(d: Dialect, stamp_ns: int, frame_id: str, data: np.ndarray, stamps_ns: np.ndarray) -> Any:
+    """``velodyne_msgs/VelodyneScan``: one sweep's packets (``data`` (P, 1206) uint8, each stamped)."""
+    packets = [d.make(VELODYNE_PACKET, stamp=d.time(int(ns)), data=np.ascontiguousarray(row, dtype=np.uint8))
+               for row, ns in zip(np.asarray(data), np.asarray(stamps_ns))]
+    return d.make(VELODYNE_SCAN, header=d.header(stamp_ns, frame_id), packets=packets)
 
 
 def velodyne_fields(points: np.ndarray, times_s: np.ndarray, intensity: np.ndarray | None,

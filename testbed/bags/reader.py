@@ -41,7 +41,7 @@ from . import images as IM
 from .convert import (COLOUR_ENCODINGS, DEPTH_ENCODINGS, TIME_FIELD_NAMES, Cuboid, PointTimeEncoding,
                       camera_info_from_msg, cloud_arrays, colour_to_rgb, cuboids_from_markers,
                       depth_to_metres, distortion_of, image_array, infer_time_encoding,
-                      normalize_frame, pose_T, time_ns, times_after_stamp, transform_T,
+                      VELODYNE_SCAN, normalize_frame, pose_T, time_ns, times_after_stamp, transform_T,
                       wheel_odometry_from_msg)
 from .errors import (BagError, BagReadError, CorruptBagError, MissingExtrinsicError, MissingTopicError,
                      TooManyBadMessagesError,
@@ -500,7 +500,7 @@ class BagReader:
     # --- opening steps ---
     def _resolve_topics(self) -> None:
         req = self._requested
-        self.lidar_topic = self._pick("lidar", req["lidar"], (POINTCLOUD2,), T.LIDAR_CANDIDATES,
+        self.lidar_topic = self._pick("lidar", req["lidar"], (POINTCLOUD2, VELODYNE_SCAN), T.LIDAR_CANDIDATES,
                                       lambda name: name not in T.RESULT_TOPICS, required=True) or ""
         images = (IMAGE, COMPRESSED_IMAGE)
         self.rgb_topic = self._pick("rgb", req["rgb"], images, T.RGB_CANDIDATES,
@@ -643,6 +643,8 @@ class BagReader:
 
     def _scan(self, msg: Any, t_ns: int) -> LidarScan:
         topic = self.lidar_topic
+        if hasattr(msg, "packets"):
+            return self._packet_scan(msg, t_ns)
         try:
             arrays = cloud_arrays(msg)
         except ValueError as exc:
@@ -691,6 +693,38 @@ class BagReader:
                          frame_id=self.lidar_frame or normalize_frame(msg.header.frame_id))
         if self.groundtruth is not None:
             scan.T_world_sensor = self.groundtruth.T_world_base_at(stamp) @ self.T_base_velodyne
+        return scan
+
+    def _packet_scan(self, msg: Any, t_ns: int) -> LidarScan:
+        """A ``velodyne_msgs/VelodyneScan`` decoded as velodyne_pointcloud decodes a VLP-32C's packets
+        (``stack.velodyne``), restamped at its first return where the driver stamped the sweep's end."""
+        from stack.velodyne import PACKET_BYTES, PacketError, VelodynePackets, decode_sweep
+
+        topic = self.lidar_topic
+        try:
+            rows = [np.frombuffer(np.asarray(pk.data, dtype=np.uint8).tobytes(), dtype=np.uint8)
+                    for pk in msg.packets]
+            if any(r.size != PACKET_BYTES for r in rows):
+                raise PacketError(f"a packet of {next(r.size for r in rows if r.size != PACKET_BYTES)} bytes: "
+                                  f"expected {PACKET_BYTES}")
+            data = np.stack(rows) if rows else np.zeros((0, PACKET_BYTES), dtype=np.uint8)
+            stamps = np.array([time_ns(pk.stamp) for pk in msg.packets], dtype=np.int64)
+            packets = VelodynePackets(data, stamps)
+            stamp_ns = time_ns(msg.header.stamp) or t_ns
+            scan = decode_sweep(packets, stamp_ns, frame_id=self.lidar_frame or normalize_frame(msg.header.frame_id))
+        except PacketError as exc:
+            raise UnsupportedEncodingError(self.path, topic, str(exc), "VLP-32C data packets") from None
+        if scan.times_s.size and not (np.all(np.isfinite(scan.times_s))
+                                      and float(np.ptp(scan.times_s)) <= MAX_SWEEP_S):
+            raise UnsupportedEncodingError(self.path, topic, f"packet stamps spanning {float(np.ptp(scan.times_s))} s",
+                                           f"a sweep of at most {MAX_SWEEP_S} s")
+        if scan.times_s.size and scan.times_s.min() < 0:  # stamped at the sweep's end: restamp at its start
+            t0 = float(scan.times_s.min())
+            scan.stamp += t0
+            scan.times_s = scan.times_s - t0
+        scan.packets = packets
+        if self.groundtruth is not None:
+            scan.T_world_sensor = self.groundtruth.T_world_base_at(scan.stamp) @ self.T_base_velodyne
         return scan
 
     def _rgb(self, msg: Any) -> np.ndarray:

@@ -10,6 +10,7 @@ carries them by accident.
 from __future__ import annotations
 
 LIDAR = "/velodyne_points"
+LIDAR_PACKETS = "/velodyne_packets"  # velodyne_driver's raw packets (velodyne_msgs/VelodyneScan)
 RGB = "/camera/color/image_raw"
 RGB_INFO = "/camera/color/camera_info"
 DEPTH = "/camera/aligned_depth_to_color/image_raw"
@@ -37,7 +38,7 @@ VELODYNE = "velodyne"
 CAMERA = "camera_color_optical_frame"
 
 # Names the reader tries, in order, when a topic is not given.
-LIDAR_CANDIDATES = (LIDAR, "/points_raw", "/ouster/points", "/os_cloud_node/points", "/lidar/points")
+LIDAR_CANDIDATES = (LIDAR, LIDAR_PACKETS, "/points_raw", "/ouster/points", "/os_cloud_node/points", "/lidar/points")
 RGB_CANDIDATES = (RGB, RGB_COMPRESSED, "/camera/rgb/image_raw")
 DEPTH_CANDIDATES = (DEPTH, DEPTH_COMPRESSED, "/camera/depth/image_rect_raw", "/camera/depth/image_raw")
 ODOM_CANDIDATES = (WHEEL_ODOM, FILTERED_ODOM, "/odom")

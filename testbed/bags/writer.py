@@ -44,7 +44,8 @@ from stack.messages import CameraFrame, LidarScan, ObjectTruth, WheelOdometry
 from . import topics as T
 from . import images as IM
 from .convert import (Cuboid, Format, camera_info_msg, depth_to_mm, dialect, image_msg, marker_array,
-                      odometry_msg, pointcloud2, tf_message, to_ns, transform_stamped, velodyne_fields)
+                      odometry_msg, pointcloud2, tf_message, to_ns, transform_stamped, VELODYNE_SCAN,
+                      velodyne_fields, velodyne_scan)
 from .errors import BagWriteError
 from .salvage import zstd
 
@@ -73,9 +74,11 @@ class BagWriter:
 
     def __init__(self, path: Path | str, format: Format | None = None, storage: Storage = "mcap", *,
                  compress: bool = True, overwrite: bool = False, depth_encoding: str = "16UC1",
-                 images: str = "raw"):
+                 images: str = "raw", lidar: str = "points"):
         """``images``: ``raw`` (sensor_msgs/Image) or ``compressed`` (lossless PNG CompressedImage on
-        ``.../compressed`` and ``.../compressedDepth``, ``testbed.bags.images``; 16-bit depth only)."""
+        ``.../compressed`` and ``.../compressedDepth``, ``testbed.bags.images``; 16-bit depth only).
+        ``lidar``: ``points`` (PointCloud2 on ``/velodyne_points``) or ``packets`` (the VLP-32C's data
+        packets, ``velodyne_msgs/VelodyneScan`` on ``/velodyne_packets``: scans must carry them)."""
         self.path = Path(path)
         self.format: Format = format or infer_format(self.path)
         if self.format not in ("ros1", "ros2"):
@@ -93,6 +96,9 @@ class BagWriter:
         if images == "compressed" and depth_encoding != "16UC1":
             raise BagWriteError(self.path, "compressed images carry 16UC1 depth only; use images='raw' for 32FC1")
         self.images = images
+        if lidar not in ("points", "packets"):
+            raise BagWriteError(self.path, f"lidar {lidar!r}: expected 'points' or 'packets'")
+        self.lidar = lidar
         if self.path.exists() and not overwrite:
             raise BagWriteError(self.path, "exists already; pass overwrite=True (--force) to replace it")
         if not self.path.parent.is_dir():
@@ -199,13 +205,35 @@ class BagWriter:
             raise BagWriteError(self.path, f"cannot write a {type(msg).__name__}: expected "
                                            "LidarScan, CameraFrame or WheelOdometry")
 
-    def write_scan(self, scan: LidarScan, topic: str = T.LIDAR) -> None:
-        """``sensor_msgs/PointCloud2`` as velodyne_pointcloud writes it: x y z intensity ring time."""
+    def write_scan(self, scan: LidarScan, topic: str | None = None) -> None:
+        """``sensor_msgs/PointCloud2`` as velodyne_pointcloud writes it: x y z intensity ring time; or,
+        with ``lidar="packets"``, the sweep's packets as velodyne_driver records them."""
+        if self.lidar == "packets":
+            self.write_packets(scan, topic or T.LIDAR_PACKETS)
+            return
+        topic = topic or T.LIDAR
         points = np.asarray(scan.points)
         if points.ndim != 2 or points.shape[1] != 3:
             raise BagWriteError(self.path, f"scan at {scan.stamp}: points shape {points.shape}, expected (N, 3)")
         fields = velodyne_fields(points, scan.times_s, scan.intensity, scan.ring)
         self.write_pointcloud(topic, scan.stamp, scan.frame_id, fields)
+
+    def write_packets(self, scan: LidarScan, topic: str = T.LIDAR_PACKETS) -> None:
+        """``velodyne_msgs/VelodyneScan`` of a sweep from a sensor that publishes VLP-32C packets; the
+        points it holds (all of the sweep's, or fewer) are packed on the sensor's packets, checked to
+        decode back to them bit for bit."""
+        from stack.velodyne import PacketError, encode_like
+
+        if scan.packets is None:
+            raise BagWriteError(self.path, f"scan at {scan.stamp:.3f} s carries no VLP-32C packets: record packets "
+                                           "from a sensor that publishes them ([sensors] lidar_packets = true)")
+        try:
+            packets = encode_like(scan.packets, scan)
+        except PacketError as exc:
+            raise BagWriteError(self.path, f"scan at {scan.stamp:.3f} s: {exc}") from None
+        stamp_ns = self._ns(scan.stamp)
+        self._put(topic, VELODYNE_SCAN, stamp_ns,
+                  velodyne_scan(self.dialect, stamp_ns, scan.frame_id, packets.data, packets.stamps_ns))
 
     def write_camera(self, frame: CameraFrame) -> None:
         """Colour (rgb8) and aligned depth images, each with its camera_info, as realsense2_camera does."""

@@ -18,6 +18,11 @@ def register(sub) -> None:
     p.add_argument("--images", choices=["raw", "compressed"], default="compressed",
                    help="camera topics: lossless PNG CompressedImage (.../compressed, .../compressedDepth; "
                         "default) or raw sensor_msgs/Image")
+    p.add_argument("--lidar", choices=["points", "packets"], default=None,
+                   help="LiDAR topic: PointCloud2 on /velodyne_points, or the VLP-32C's data packets on "
+                        "/velodyne_packets (velodyne_msgs/VelodyneScan; lossless, ~7x smaller; the Velodyne then "
+                        "publishes packets: ranges in 4 mm steps). Default: packets where the scenario's "
+                        "[sensors] lidar_packets is on, else points")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
     p.add_argument("--light", type=float, default=None, help="override the scenario's light level (0-1)")
@@ -83,7 +88,8 @@ def record(args) -> int:
     if bad is not None:
         return bad
     summary = record_episode(args.scenario, args.bag, args.format, args.storage, args.seed, args.duration,
-                             args.light, overwrite=args.force, faults=args.faults, images=args.images)
+                             args.light, overwrite=args.force, faults=args.faults, images=args.images,
+                             lidar=args.lidar)
     print(json.dumps(summary, indent=2))
     return 0
 

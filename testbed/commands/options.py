@@ -19,7 +19,7 @@ if TYPE_CHECKING:  # imported where used: building the parser stays light
 # argparse destination -> config key, for the flags that are short forms of --set
 FLAG_KEYS = {
     "scenario": "run.scenario", "seed": "run.seed", "light": "run.light", "duration": "run.duration",
-    "profile": "run.profile",
+    "profile": "run.profile", "lidar": "run.lidar",
     "input_mode": "detector.input", "stages": "detector.stages", "fpr": "detector.fpr",
     "weights": "detector.weights", "dope_every": "detector.every",
     "policy": "store.policy", "detector": "components.detector", "odometry": "components.odometry",

@@ -126,6 +126,10 @@ def register(sub) -> None:
     p.add_argument("--profile", choices=["full", "fast"], default=None,
                    help="fast: the camera (and DOPE) at half the scenario's rate, no segmentation image, no per-image "
                         "recall; for large sweeps, what it costs in docs/speed.md (default: the config's run.profile, full)")
+    p.add_argument("--lidar", choices=["points", "packets"], default=None,
+                   help="packets: the Velodyne publishes VLP-32C data packets (ranges in 4 mm steps) and each sweep "
+                        "is their decoding, as on a robot that records /velodyne_packets (default: the scenario's "
+                        "[sensors] lidar_packets)")
     p.add_argument("--policy", default=None,
                    help="labelling policy: last, last-fpr, best-score, robust-mean (default), ..., or MODULE:FUNCTION "
                         "(observations -> stack.object_store.Label or None)")

@@ -23,6 +23,12 @@ def test_bag_floor_prints_the_table(capsys):
         assert row in out, row
 
 
+def test_bag_floor_with_the_velodynes_packets(capsys):
+    assert _load("bench_bag_floor").main(["--duration", "0.5", "--lidar", "packets"]) == 0
+    out = capsys.readouterr().out
+    assert "/velodyne_packets" in out and "/velodyne_points" not in out
+
+
 def test_bag_floor_colour_entropy_from_the_model():
     mod = _load("bench_bag_floor")
     bits = mod.colour_bits_table(2.0)
