@@ -455,7 +455,7 @@ class Episode:
         """The sweep as a VLP-32C publishes it: ranges in the sensor's distance steps, reflectivity
         0-255, packed into its data packets; the scan is their decoding (what replay of a bag of
         them gives, bit for bit) and carries them."""
-        from stack.velodyne import BLOCKS, build_packets, decode_sweep
+        from stack.velodyne import BLOCKS, build_packets, decode_blocks
 
         layout = self.packet_layout
         model = layout.model
@@ -470,9 +470,9 @@ class Episode:
         by_block[1][: layout.columns] = refl[:, ring_of_laser]
         stamp_ns = int(round(stamp * 1e9))
         shape = (layout.packets, BLOCKS, counts.shape[1])
-        packets = build_packets(layout.azimuth_centideg, by_block[0].reshape(shape), by_block[1].reshape(shape),
-                                stamp_ns + layout.offsets_ns)
-        scan = decode_sweep(packets, stamp_ns, model)
+        counts, refl = by_block[0].reshape(shape), by_block[1].reshape(shape)
+        packets = build_packets(layout.azimuth_centideg, counts, refl, stamp_ns + layout.offsets_ns)
+        scan = decode_blocks(layout.azimuth_centideg, counts, refl, packets.stamps_ns, stamp_ns, model)  # = decode_sweep(packets)
         scan.T_world_sensor = T_world_sensor
         scan.packets = packets
         self.lidar_points += int(len(scan.points))

@@ -148,22 +148,44 @@ def parse_packets(data: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return az, counts, ret[..., 2].copy()
 
 
+_DIRECTIONS: dict = {}  # (model, the blocks' azimuths) -> directions: a sensor at a steady speed repeats them
+
+
+def _directions(model: Vlp32c, az: np.ndarray) -> np.ndarray:
+    key = (model, az.shape, az.tobytes())
+    d = _DIRECTIONS.get(key)
+    if d is None:
+        d = model.directions(az)
+        d.setflags(write=False)
+        if len(_DIRECTIONS) >= 8:
+            _DIRECTIONS.pop(next(iter(_DIRECTIONS)))
+        _DIRECTIONS[key] = d
+    return d
+
+
 def decode_sweep(packets: VelodynePackets, stamp_ns: int, model: Vlp32c = VLP32C,
                  frame_id: str = "velodyne") -> LidarScan:
     """The sweep of these packets, stamped ``stamp_ns``: points (float32, ROS axes) in packet, block
     and laser-ID order, per-point times after the stamp, rings, reflectivity as intensity."""
     az, counts, refl = parse_packets(packets.data)
-    stamps = np.asarray(packets.stamps_ns, dtype=np.int64)
+    return decode_blocks(az, counts, refl, packets.stamps_ns, stamp_ns, model, frame_id)
+
+
+def decode_blocks(az: np.ndarray, counts: np.ndarray, refl: np.ndarray, stamps_ns: np.ndarray, stamp_ns: int,
+                  model: Vlp32c = VLP32C, frame_id: str = "velodyne") -> LidarScan:
+    """``decode_sweep`` of packets already parsed (``parse_packets``'s arrays and the packet stamps)."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
     if stamps.shape != (az.shape[0],):
         raise PacketError(f"{stamps.shape} packet stamps for {az.shape[0]} packets: expected one each")
-    hit = counts > 0  # (P, 12, 32)
-    r = counts[hit].astype(np.float64) * model.distance_resolution
-    dirs = model.directions(az)[hit]  # (N, 3)
+    idx = np.flatnonzero(np.asarray(counts).reshape(-1))  # returns, in packet, block, laser order
+    block, laser = idx // LASERS, idx % LASERS
+    r = np.asarray(counts).reshape(-1)[idx].astype(np.float64) * model.distance_resolution
+    dirs = _directions(model, az).reshape(-1, 3)[idx]  # (N, 3)
     points = (dirs * r[:, None]).astype(np.float32)
     block_t = ((stamps - int(stamp_ns)) * 1e-9)[:, None] + np.arange(BLOCKS) * model.firing_period_s  # (P, 12)
-    times = (block_t[:, :, None] + model.laser_times())[hit]
-    ring = np.broadcast_to(model.ring_of_laser, hit.shape)[hit]
-    intensity = refl[hit].astype(np.float32)
+    times = block_t.reshape(-1)[block] + model.laser_times()[laser]
+    ring = model.ring_of_laser[laser]
+    intensity = np.asarray(refl).reshape(-1)[idx].astype(np.float32)
     return LidarScan(float(int(stamp_ns) * 1e-9), points, times, ring.astype(np.uint16), intensity, frame_id)
 
 
