@@ -131,3 +131,55 @@ def test_the_simulated_velodyne_publishes_packets_that_decode_to_its_sweep():
     assert np.abs(steps - np.rint(steps)).max() < 1e-3  # every range on the sensor's 4 mm steps
     again = decode_sweep(encode_like(b.packets, b), int(round(b.stamp * 1e9)))
     assert np.array_equal(again.points, b.points) and np.array_equal(again.times_s, b.times_s)
+
+
+def _packet_bag(path, sweeps):
+    """A bag of VelodyneScan messages only, each sweep (packets, stamp_ns) as given."""
+    from testbed.bags import BagWriter
+    from testbed.bags import topics as T
+    from testbed.bags.convert import VELODYNE_SCAN, velodyne_scan
+
+    with BagWriter(path) as w:
+        for pk, stamp_ns in sweeps:
+            w.write_message(T.LIDAR_PACKETS, VELODYNE_SCAN, stamp_ns * 1e-9,
+                            velodyne_scan(w.dialect, stamp_ns, "velodyne", pk.data, pk.stamps_ns))
+    return path
+
+
+@pytest.mark.parametrize("name", ["b.bag", "b"])
+def test_a_bag_of_packets_reads_back_as_its_sweeps_and_skips_a_bad_one(tmp_path, name):
+    from testbed.bags import BagReader
+
+    sweeps = []
+    for k in range(12):
+        pk, _ = _sweep(k, packets=10)
+        stamp_ns = 1_000_000_000 + k * 100_000_000
+        pk = VelodynePackets(pk.data, pk.stamps_ns - 7_000_000_000 + stamp_ns)
+        if k == 5:  # an HDL-32E's packet among the VLP-32C's
+            pk.data[3, 1205] = 0x21
+        sweeps.append((pk, stamp_ns))
+    bag = _packet_bag(tmp_path / name, sweeps)
+    with BagReader(bag, require_camera=False, T_base_lidar=np.eye(4)) as r:
+        scans = list(r.scans())
+        bad = r.bad_message_summary()
+    assert len(scans) == 11
+    assert list(bad.values())[0]["count"] == 1 and "product ID 0x21" in list(bad.values())[0]["reason"]
+    for scan, (pk, stamp_ns) in zip(scans, [s for k, s in enumerate(sweeps) if k != 5]):
+        want = decode_sweep(pk, stamp_ns)
+        assert scan.stamp == want.stamp and np.array_equal(scan.points, want.points)
+        assert np.array_equal(scan.times_s, want.times_s) and np.array_equal(scan.ring, want.ring)
+
+
+def test_replay_of_a_bag_of_foreign_packets_stops_with_one_line(tmp_path, capsys):
+    from testbed.cli import main
+
+    sweeps = []
+    for k in range(3):
+        pk, _ = _sweep(k, packets=4)
+        pk.data[:, 1204] = 0x39  # dual return
+        sweeps.append((pk, 1_000_000_000 + k * 100_000_000))
+    bag = _packet_bag(tmp_path / "dual", sweeps)
+    assert main(["replay", str(bag), "--out", str(tmp_path / "out"), "--odometry-only",
+                 "--T-base-lidar", "0,0,0,0,0,0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "return mode 0x39" in err[0] and "Traceback" not in err[0]
