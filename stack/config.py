@@ -70,6 +70,12 @@ class DetectorConfig(BaseModel):
     weights: str | None = Field(None, description="weights file (null: the shipped ones for the input)")
     thresholds: str | None = Field(None, description="FPR thresholds JSON (null: the file beside the weights)")
     every: int = Field(1, ge=1, description="run the detector on every n-th image only")
+    keyframe_m: float = Field(0.0, ge=0, description="run the detector only on images the robot has travelled this far "
+                              "(m, by wheel odometry) since the last detected one, or turned keyframe_deg (0 and 0: "
+                              "every image)")
+    keyframe_deg: float = Field(0.0, ge=0, description="... or turned this much (deg) since it")
+    keyframe_max_s: float = Field(1.0, ge=0, description="... or taken this long (s) after it, so a still robot still "
+                                  "looks (0: never)")
     input_size: tuple[int, int] = Field((320, 240), description="network input size, width and height (px)")
     peak_threshold: float = Field(0.3, ge=0, description="belief-map peaks below this are no key point")
     angle_threshold: float = Field(0.5, ge=0, description="a corner joins the centroid its affinity points at within this")
@@ -94,6 +100,13 @@ class DetectorConfig(BaseModel):
     precision: Literal["fp32", "bf16"] = Field("fp32", description="the network's arithmetic: bf16 halves its time "
                                                "on a CPU with native bfloat16 (AVX512-BF16, AMX; elsewhere it runs "
                                                "fp32), and its maps are not always fp32's (docs/speed.md)")
+
+    def keyframes(self):
+        """The :class:`stack.keyframes.KeyframeSettings` of ``keyframe_*`` (None while off)."""
+        from stack.keyframes import KeyframeSettings
+
+        k = KeyframeSettings(self.keyframe_m, self.keyframe_deg, self.keyframe_max_s)
+        return k if k.enabled else None
 
     def dope_kwargs(self) -> dict:
         """Keyword arguments of :class:`stack.dope_fpr.DopeDetector` (``dims`` and ``threads`` aside)."""

@@ -31,6 +31,7 @@ import numpy as np
 from stack.evidence import carry_views, count_views
 from stack.fusion import fuse
 from stack.interfaces import Detector, LoopCloser, Odometry
+from stack.keyframes import KeyframeGate, KeyframeSettings
 from stack.lidar_slam import WheelOdometryTrack
 from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
 from stack.object_store import ObjectStore, Observation
@@ -102,14 +103,17 @@ class DopeSlam:
     keeps the fused observations out of the object store (a harness that labels on its own).
     ``retire``: retire map objects whose place the depth images show empty (:mod:`stack.retire`);
     None: never. ``count_views``: count, per map object, the detected images that showed its place
-    (:func:`stack.evidence.count_views`; the evidence gate's detection rate).
+    (:func:`stack.evidence.count_views`; the evidence gate's detection rate). ``keyframes``: a
+    :class:`stack.keyframes.KeyframeSettings`: the detector runs only on images the robot has moved
+    or turned enough for since the last detected one (by its wheel odometry), or after a while.
     """
 
     def __init__(self, odometry: Odometry, detector: Detector | None, T_base_cam: np.ndarray,
                  dims: Mapping[str, Sequence[float]], policy: str = "robust-mean",
                  loop_closer: LoopCloser | None = None, detect_every: int = 1, keep_observations: bool = False,
                  on_fused_image: Callable[[FusedImage], None] | None = None, map_objects: bool = True,
-                 retire: RetireConfig | None = None, count_views: bool = True):
+                 retire: RetireConfig | None = None, count_views: bool = True,
+                 keyframes: KeyframeSettings | None = None):
         if detector is not None and not isinstance(detector, Detector):
             raise TypeError(f"detector {type(detector).__name__} has no detect(frame) method")
         if not isinstance(odometry, Odometry):
@@ -123,6 +127,7 @@ class DopeSlam:
         self.policy = policy
         self.loop_closer = loop_closer
         self.detect_every = int(detect_every)
+        self.keyframes = KeyframeGate(keyframes) if keyframes is not None and keyframes.enabled else None
         self.keep_observations = keep_observations
         self.on_fused_image = on_fused_image
         self.map_objects = map_objects
@@ -202,7 +207,8 @@ class DopeSlam:
         if self.loop_closer is not None:
             self.loop_closer.on_image(frame)
         if detections is None:
-            run = self.detector is not None and self.images % self.detect_every == 0
+            run = self.detector is not None and self.images % self.detect_every == 0 \
+                and (self.keyframes is None or self.keyframes.passes(frame))
             self.images += 1
             if not run:
                 return None
@@ -212,6 +218,8 @@ class DopeSlam:
         else:
             self.images += 1
             detections = list(detections)
+            if self.keyframes is not None:
+                self.keyframes.mark(frame)
         keep_frame = self.map_objects and (self.retirement is not None or self.count_views)
         self._pending.append(_Waiting(self.detected_images, float(frame.stamp), detections,
                                       frame if keep_frame else None))
@@ -220,6 +228,8 @@ class DopeSlam:
 
     def on_wheel_odometry(self, msg: WheelOdometry) -> None:
         self.wheel.add(msg)
+        if self.keyframes is not None:
+            self.keyframes.on_wheel_odometry(msg)
         if self._odometry_wheel is not None:
             self._odometry_wheel(msg)
 

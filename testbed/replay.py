@@ -99,8 +99,12 @@ class DetectionAhead:
 
     _END = object()
 
-    def __init__(self, open_reader: Callable[[], BagReader], detector, dope_every: int = 1, maxsize: int = 16):
+    def __init__(self, open_reader: Callable[[], BagReader], detector, dope_every: int = 1, maxsize: int = 16,
+                 keyframes=None):
+        from stack.keyframes import KeyframeGate
+
         self._open, self._detector, self._every = open_reader, detector, dope_every
+        self.gate = KeyframeGate(keyframes) if keyframes is not None and keyframes.enabled else None
         self._queue: queue.Queue = queue.Queue(maxsize)
         self._stop = threading.Event()
         self.read_seconds = 0.0
@@ -122,10 +126,19 @@ class DetectionAhead:
             reader = self.reader = self._open()
             try:
                 t_last = time.perf_counter()
-                for i, frame in enumerate(reader.camera_frames()):
+                gate = self.gate
+                frames = reader.camera_frames() if gate is None else \
+                    reader.frames(lidar=False, camera=True, odometry=True)  # the gate reads the wheel odometry
+                i = -1
+                for frame in frames:
+                    if not isinstance(frame, CameraFrame):
+                        gate.on_wheel_odometry(frame)
+                        continue
+                    i += 1
                     t0 = time.perf_counter()
                     self.read_seconds += t0 - t_last
-                    dets = list(self._detector.detect(frame)) if i % self._every == 0 else None
+                    run = i % self._every == 0 and (gate is None or gate.passes(frame))
+                    dets = list(self._detector.detect(frame)) if run else None
                     t_last = time.perf_counter()
                     if not self._put((frame, dets, t_last - t0)):
                         return
@@ -180,7 +193,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                fpr: bool = True, weights=None, policy: str = "robust-mean", topics: BagTopics | None = None,
                dope_every: int = 1, parallel: bool = True, write_outputs: bool = True,
                results_bag=None, keep_detections: bool = False, loop_closure: bool = False,
-               vocabulary=None, odometry=None, odometry_only: bool = False, odometry_config=None) -> dict:
+               vocabulary=None, odometry=None, odometry_only: bool = False, odometry_config=None,
+               keyframes=None) -> dict:
     """Run the stack's pipeline over a bag; returns the report (written to OUT/report.json).
 
     ``detector``: any :class:`stack.interfaces.Detector` (default: DOPE + FPR for ``input_mode``,
@@ -192,7 +206,9 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     corrected trajectory then places the labels, and replaces the odometry's in the outputs (the
     odometry-only ATE is reported beside it when the bag has ground truth). ``odometry_only``: the
     LiDAR (and wheel odometry) only: no images are read and no detector runs; the trajectory, the
-    LiDAR map and an empty object store come out."""
+    LiDAR map and an empty object store come out. ``keyframes``: a
+    :class:`stack.keyframes.KeyframeSettings`: the detector runs only on images the robot moved or
+    turned enough for (by the bag's wheel odometry), or after a while."""
     from sim.objects import load_catalog
     from testbed.run import detector_name, make_detector, make_odometry
 
@@ -230,14 +246,15 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                 log.warning("%s: no colour images: the loop closer uses LiDAR key frames only", bag.path)
 
         pipe = DopeSlam(odom, None if parallel else detector, bag.T_base_camera, dims, policy, loop_closer=lc,
-                        detect_every=dope_every, keep_observations=keep_detections)
+                        detect_every=dope_every, keep_observations=keep_detections, keyframes=keyframes)
         dlog = DetectionLog()
         unscored_frames = 0  # detected images whose per-image truth is missing (lost with a damaged chunk)
         all_dets: list = []
         scans = 0
         read_s = 0.0
         if parallel:
-            ahead = DetectionAhead(lambda: open_bag(bag_path, topics, input_mode), detector, dope_every)
+            ahead = DetectionAhead(lambda: open_bag(bag_path, topics, input_mode), detector, dope_every,
+                                   keyframes=keyframes)
             stream = _merged(bag.frames(lidar=True, camera=False, odometry=True), ahead)
         else:
             stream = ((m.stamp, 0, m, None) for m in bag.frames(lidar=True, camera=not odometry_only, odometry=True))
@@ -350,6 +367,9 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         dsum["detections_without_pose"] = result.unposed
         if truth is not None and unscored_frames:
             dsum["frames_without_ground_truth"] = unscored_frames
+        gate = ahead.gate if ahead is not None else pipe.keyframes
+        if gate is not None:  # images the keyframe gate kept from the detector
+            dsum["keyframe_held_images"] = gate.held
         report["detection"] = dsum
         if gt is not None and gt.objects:
             labels, labels_summary = score_labels(store, gt.objects, T_world_map)

@@ -21,7 +21,7 @@ import numpy as np
 
 from stack.config import torch_threads
 from stack.lidar_slam import LidarOdometry
-from stack.messages import CameraFrame, Detection, LidarScan
+from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
 from stack.metrics import ate_rmse, ate_rmse_umeyama, rpe, write_tum
 from stack.object_store import ObjectStore
 from stack.pipeline import DopeSlam
@@ -166,9 +166,13 @@ class _Ahead:
     every ``every``-th image (None for the rest and for other messages), exactly what the pipeline's
     own call would have found, so the pipeline's results are the same bytes either way."""
 
-    def __init__(self, messages, detector, every: int = 1, images_ahead: int = 2, process=None):
+    def __init__(self, messages, detector, every: int = 1, images_ahead: int = 2, process=None, keyframes=None):
         """``process``: a :class:`testbed.detection_process.DetectionProcess` that runs ``detector``'s
-        twin in a child process (then no thread; the caller closes it)."""
+        twin in a child process (then no thread; the caller closes it). ``keyframes``: the pipeline's
+        :class:`stack.keyframes.KeyframeSettings`; a gate of its own, fed the same messages in the same
+        order, passes the same images as the pipeline's."""
+        from stack.keyframes import KeyframeGate
+
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
 
@@ -179,6 +183,7 @@ class _Ahead:
             ThreadPoolExecutor(max_workers=1, thread_name_prefix="run-detection")
         self._queue: deque = deque()
         self._images = 0
+        self._gate = KeyframeGate(keyframes) if keyframes is not None and keyframes.enabled else None
         self.wait_seconds = 0.0  # the pipeline's wait for a detection (not simulation time)
 
     def _detect(self, frame):
@@ -191,8 +196,10 @@ class _Ahead:
         try:
             for msg in self._messages:
                 job = None
+                if self._gate is not None and isinstance(msg, WheelOdometry):
+                    self._gate.on_wheel_odometry(msg)
                 if isinstance(msg, CameraFrame):
-                    if self._images % self._every == 0:
+                    if self._images % self._every == 0 and (self._gate is None or self._gate.passes(msg)):
                         job = self._process.submit(msg) if self._process is not None \
                             else self._pool.submit(self._detect, msg)
                     self._images += 1
@@ -316,8 +323,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             lc = LoopClosingRun() if config is None else \
                 LoopClosingRun(config.loop_closure.vocabulary, config.loop_closure.closure_config())
         odom = make_odometry(odometry, ep.T_base_velodyne, None if config is None else config.odometry)
+        keyframes = None if config is None else config.detector.keyframes()
         pipe = DopeSlam(odom, detector, ep.T_base_camera, dims, policy, loop_closer=lc, detect_every=dope_every,
-                        keep_observations=keep_detections)
+                        keep_observations=keep_detections, keyframes=keyframes)
         if config is not None:  # the store as configured (before the first message)
             pipe.store = ObjectStore(dims=dims, gate_m=config.store.gate_m, policy=policy,
                                      evidence=config.evidence_or_none())
@@ -343,7 +351,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
                 process = DetectionProcess(own_kwargs, ep.camera_info, torch_threads() or 1)
                 closing.callback(process.close)
-            ahead = _Ahead(dyn.messages(), detector, dope_every, process=process)
+            ahead = _Ahead(dyn.messages(), detector, dope_every, process=process, keyframes=keyframes)
         stream = ((m, None, 0.0) for m in dyn.messages()) if ahead is None else ahead
         for msg, found, found_s in stream:
             simulation_s += time.perf_counter() - t_last
@@ -413,6 +421,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             "map_floor": None if store.floor is None else {"normal": [float(v) for v in store.floor[0]],
                                                            "d_m": store.floor[1]},
         }
+        if pipe.keyframes is not None:  # images the keyframe gate kept from the detector
+            report["detection"]["keyframe_held_images"] = pipe.keyframes.held
         dyn.report(report, store, T_world_map)
         watch.finish(store, T_world_map, labels_summary.get("map_labels"))
         if config is not None:

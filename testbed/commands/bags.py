@@ -170,7 +170,7 @@ def replay(args) -> int:
                                 parallel=not args.sequential, results_bag=args.results_bag,
                                 loop_closure=config.loop_closure.enabled, vocabulary=config.loop_closure.vocabulary,
                                 detector=detector, odometry=c.odometry, odometry_only=args.odometry_only,
-                                odometry_config=config.odometry)
+                                odometry_config=config.odometry, keyframes=d.keyframes())
     except ImportPathError as e:  # the odometry's constructor failed
         print(f"dopeslam replay: --{e}", file=sys.stderr)
         return 2

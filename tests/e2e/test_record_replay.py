@@ -349,3 +349,25 @@ def test_replay_applies_the_odometry_settings(live, replayed, tmp_path):
     assert ta.shape == tb.shape
     d = np.abs(ta[:, 1:4] - tb[:, 1:4]).max()
     assert 1e-9 < d < 0.2, d
+
+
+def test_replay_with_the_keyframe_gate_detects_the_same_images_either_way(live, tmp_path):
+    """``[detector] keyframe_*``: the detector sees only the images the robot moved enough for (by the
+    bag's wheel odometry) or one per ``keyframe_max_s``; the detection thread (the default) and the
+    message loop (``--sequential``) pass the same images."""
+    from stack.keyframes import KeyframeSettings
+
+    gate = KeyframeSettings(min_motion_m=0.1, min_turn_deg=5.0, max_interval_s=1.0)
+    seen, reports = [], []
+    for parallel in (True, False):
+        detector = oracle_for(live["bag"])
+        reports.append(replay_bag(live["bag"], tmp_path / f"gated_{parallel}", detector=detector, parallel=parallel,
+                                  keyframes=gate))
+        seen.append(detector.seen)
+    assert seen[0] == seen[1]
+    frames = reports[0]["detection"]["frames"]
+    assert frames == len(seen[0]) == reports[1]["detection"]["frames"]
+    # 8 s: standing 0.5 s, then 0.25 m/s: about one image per 10 cm of 81
+    assert 15 <= frames <= 40
+    assert frames + reports[0]["detection"]["keyframe_held_images"] == 81
+    assert reports[1]["detection"]["keyframe_held_images"] == reports[0]["detection"]["keyframe_held_images"]

@@ -60,3 +60,25 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys)
     for name in ("labels.json", "estimate_tum.txt"):
         assert (seq / name).read_bytes() == (out / name).read_bytes(), name
     assert json.loads((seq / "report.json").read_text())["detection"]["predictions"] == report["detection"]["predictions"]
+
+
+@pytest.mark.slow
+def test_keyframe_gate_runs_the_detector_on_fewer_images_with_the_same_bytes_ahead_or_in_the_loop(
+        short_scenario, tmp_path):
+    """``--set detector.keyframe_m=0.1 --set detector.keyframe_deg=5``: DOPE runs on an image once the
+    robot has travelled 10 cm or turned 5 degrees since the last one it ran on (or after a second).
+    The detector process ahead of the pipeline and the message loop pass the same images."""
+    gate = ["--set", "detector.keyframe_m=0.1", "--set", "detector.keyframe_deg=5"]
+    outs = []
+    for extra in ([], ["--sequential"]):
+        out = tmp_path / ("loop" if extra else "ahead")
+        assert main(["run", str(short_scenario), "--out", str(out), "--seed", "3", *gate, *extra]) == 0
+        outs.append(out)
+    for name in ("labels.json", "estimate_tum.txt"):
+        assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
+    reports = [json.loads((o / "report.json").read_text()) for o in outs]
+    d = reports[0]["detection"]
+    assert d == {**reports[1]["detection"], "fps": d["fps"]}
+    # 13 s at 0.25 m/s: about 33 images of 131 pass
+    assert 25 <= d["frames"] <= 45 and d["frames"] + d["keyframe_held_images"] == 131
+    assert "keyframe_m = 0.1" in (outs[0] / "config.toml").read_text()
