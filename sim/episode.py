@@ -10,6 +10,7 @@ import logging
 import math
 import os
 import tempfile
+from collections import deque
 from typing import Iterator
 
 import cv2
@@ -233,8 +234,9 @@ class Episode:
                  camera_rate: float | None = None, segmentation: bool = True, lidar_packets: bool | None = None):
         """``render_worker``: render the camera in a second process (``sim.camera.RenderWorker``) so the
         rendering overlaps the physics, the LiDAR and whatever consumes the frames; the frames and
-        their order are the same either way. None: as the environment variable DOPESLAM_RENDER_WORKER
-        says (1 = on), else off. ``camera_rate``: the camera's rate in Hz in place of the scenario's
+        their order are the same either way. An integer N: N such processes, each drawing every N-th
+        frame (N frames in flight). None: as the environment variable DOPESLAM_RENDER_WORKER says (1 =
+        on), else off. ``camera_rate``: the camera's rate in Hz in place of the scenario's
         ``[sensors] camera_rate``. ``segmentation=False``: frames carry no segmentation image (cheaper
         to render; ``image_truth`` then gives no visible fraction and ``occluder_fraction`` is 0).
         ``lidar_packets``: the Velodyne publishes VLP-32C data packets (``stack.velodyne``) and each
@@ -257,10 +259,13 @@ class Episode:
         if render_worker is None:
             render_worker = os.environ.get("DOPESLAM_RENDER_WORKER", "0") == "1"
         self._render_worker = None
+        self._render_workers: list[RenderWorker] = []
         if self.sc.events:  # the worker's world would not follow the events
             render_worker = False
-        if self.use_camera and render_worker:  # started first: it builds its world while this one does
-            self._render_worker = RenderWorker(self.sc, self.camera_info, renderer, segmentation=self.segmentation)
+        if self.use_camera and render_worker:  # started first: they build their worlds while this one does
+            self._render_workers = [RenderWorker(self.sc, self.camera_info, renderer, segmentation=self.segmentation)
+                                    for _ in range(max(1, int(render_worker)))]
+            self._render_worker = self._render_workers[0]
         ss = np.random.SeedSequence(self.seed)
         self.rng_lidar, self.rng_camera, self.rng_odom = (np.random.default_rng(c) for c in ss.spawn(3))
         self.client, self.renderer = new_client(renderer if self.use_camera else "tiny")  # no EGL without a camera
@@ -334,9 +339,9 @@ class Episode:
         return self.groundtruth.T_world_base_at(t)
 
     def close(self) -> None:
-        if getattr(self, "_render_worker", None) is not None:
-            self._render_worker.close()
-            self._render_worker = None
+        for worker in getattr(self, "_render_workers", []):
+            worker.close()
+        self._render_workers, self._render_worker = [], None
         if self.client is not None:
             p.disconnect(self.client)
             self.client = None
@@ -350,8 +355,8 @@ class Episode:
     # --- the loop ---------------------------------------------------------------------------------
     def frames(self) -> Iterator[LidarScan | CameraFrame | WheelOdometry]:
         """The sensors' messages in time order. While a message is out, ``groundtruth_rows`` is the
-        number of ground-truth rows there were when it was made (with the render worker a frame
-        comes out a camera period later, after more physics steps; a recorder that writes the
+        number of ground-truth rows there were when it was made (with N render workers a frame
+        comes out N camera periods later, after more physics steps; a recorder that writes the
         ground truth up to each message writes the same bag either way)."""
         import time
 
@@ -364,9 +369,11 @@ class Episode:
         dirs = pattern.directions()
         col_t = pattern.column_times()
         az = pattern.azimuths()
-        worker = self._render_worker
-        in_flight = None  # (t, T_world_cam, ground-truth rows) of the frame the render worker is drawing
-        held = []  # (message, ground-truth rows) after that frame, held back to keep the time order
+        workers = self._render_workers
+        # frames the render workers are drawing, oldest first: [worker, t, T_world_cam, ground-truth rows,
+        # the (message, rows) made after it, held back to keep the time order]
+        flight: deque = deque()
+        submitted = 0
         wall0 = time.perf_counter()
         for k in range(steps + 1):
             t = k * self.dt
@@ -387,16 +394,21 @@ class Episode:
                     self.T_world_map = self.T_world_base_at(scan.stamp)
                 out.append(scan)
             if self.use_camera and k % cam_every == 0:
-                if worker is None:
+                if not workers:
                     out.append(self._camera_frame(t, T_world_base))
-                else:  # collect the previous frame, start this one, then hand out what came before it
-                    ready = ([(self._collect_frame(*in_flight[:2]), in_flight[2])] if in_flight else []) + held \
-                        + [(m, rows) for m in out]
-                    held, out = [], []
-                    in_flight = (*self._submit_frame(t, T_world_base), rows)
-                    yield from self._marked(ready)
-            if in_flight:
-                held.extend((m, rows) for m in out)
+                else:  # hand out the oldest frame once every worker is busy, then start this one
+                    if flight:
+                        flight[-1][4].extend((m, rows) for m in out)
+                    else:
+                        yield from self._marked((m, rows) for m in out)
+                    out = []
+                    if len(flight) == len(workers):
+                        yield from self._landed(flight.popleft())
+                    worker = workers[submitted % len(workers)]
+                    submitted += 1
+                    flight.append([worker, *self._submit_frame(t, T_world_base, worker), rows, []])
+            if flight:
+                flight[-1][4].extend((m, rows) for m in out)
             else:
                 yield from self._marked((m, rows) for m in out)
             if k == steps:
@@ -404,11 +416,16 @@ class Episode:
             v, w = self.follower(t, T_world_base)
             self.robot.command(v, w, self.dt)
             p.stepSimulation(physicsClientId=self.client)
-        if in_flight:
-            yield from self._marked([(self._collect_frame(*in_flight[:2]), in_flight[2])] + held)
+        while flight:
+            yield from self._landed(flight.popleft())
         self.groundtruth_rows = len(self.groundtruth)
         self.wall_seconds = time.perf_counter() - wall0
         self.sim_seconds = steps * self.dt
+
+    def _landed(self, entry):
+        """A drawn frame (collected from its worker), then the messages made after it."""
+        worker, t, T_world_cam, rows, after = entry
+        yield from self._marked([(self._collect_frame(t, T_world_cam, worker), rows)] + after)
 
     def _marked(self, pairs):
         for msg, rows in pairs:
@@ -492,14 +509,13 @@ class Episode:
         process renders it."""
         return int(self.rng_camera.integers(2**63))
 
-    def _submit_frame(self, t: float, T_world_base: np.ndarray) -> tuple[float, np.ndarray]:
+    def _submit_frame(self, t: float, T_world_base: np.ndarray, worker: RenderWorker) -> tuple[float, np.ndarray]:
         T_world_cam = T_world_base @ self._T_base_camera
-        self._render_worker.submit(T_world_cam, T_world_base, self.light_at(t), self.sc.sensors.noise,
-                                   self._frame_seed())
+        worker.submit(T_world_cam, T_world_base, self.light_at(t), self.sc.sensors.noise, self._frame_seed())
         return t, T_world_cam
 
-    def _collect_frame(self, t: float, T_world_cam: np.ndarray) -> CameraFrame:
-        rgb, depth, seg = self._render_worker.collect()
+    def _collect_frame(self, t: float, T_world_cam: np.ndarray, worker: RenderWorker) -> CameraFrame:
+        rgb, depth, seg = worker.collect()
         return CameraFrame(t, self.camera_info, rgb, depth, T_world_cam, {"segmentation": seg})
 
     # --- per-image ground truth ---------------------------------------------------------------------

@@ -20,10 +20,10 @@ log = logging.getLogger(__name__)
 
 
 def run_simulation(scenario=None, out_dir="out/simulate", seed=None, duration=None, samples: int = 3,
-                   render_worker: bool | None = True) -> dict:
+                   render_worker: bool | int | None = 2) -> dict:
     """Every sensor of an episode, no stack. Nothing here reads a segmentation image, so none is
-    rendered; the camera renders in a second process (``render_worker``; the same frames) so the
-    physics, the LiDAR and the renderer use both cores."""
+    rendered; the camera renders in two more processes, frames alternating (``render_worker``; the
+    same frames), so the physics, the LiDAR and the renderer keep both cores busy."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     wall0 = time.perf_counter()

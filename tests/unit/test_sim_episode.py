@@ -68,18 +68,23 @@ def test_frames_come_in_time_order_with_their_ground_truth_poses():
 def test_render_worker_gives_the_same_frames_in_the_same_order():
     sc = load_scenario(None)
     sc = sc.model_copy(update={"route": sc.route.model_copy(update={"start_pause": 0.0})})
-    runs = {}
-    for worker in (False, True):
-        with Episode(sc, seed=11, duration=0.25, render_worker=worker) as ep:
-            runs[worker] = list(ep.frames())
-    assert [(type(m), m.stamp) for m in runs[False]] == [(type(m), m.stamp) for m in runs[True]]
-    frames = [(a, b) for a, b in zip(runs[False], runs[True]) if isinstance(a, CameraFrame)]
-    assert len(frames) == 3
-    for a, b in frames:
-        np.testing.assert_array_equal(a.rgb, b.rgb)
-        np.testing.assert_array_equal(a.depth_m, b.depth_m)
-        np.testing.assert_array_equal(a.extra["segmentation"], b.extra["segmentation"])
-        np.testing.assert_array_equal(a.T_world_camera, b.T_world_camera)
+    runs, rows = {}, {}
+    for worker in (False, True, 2, 3):  # in the loop; one worker process; two and three, frames alternating
+        with Episode(sc, seed=11, duration=0.45, render_worker=worker) as ep:
+            runs[worker], rows[worker] = [], []
+            for m in ep.frames():
+                runs[worker].append(m)
+                rows[worker].append(ep.groundtruth_rows if not isinstance(m, CameraFrame) else None)
+    for worker in (True, 2, 3):
+        assert [(type(m), m.stamp) for m in runs[False]] == [(type(m), m.stamp) for m in runs[worker]], worker
+        assert rows[worker] == rows[True]  # the ground truth each message was made with
+        frames = [(a, b) for a, b in zip(runs[False], runs[worker]) if isinstance(a, CameraFrame)]
+        assert len(frames) == 5
+        for a, b in frames:
+            np.testing.assert_array_equal(a.rgb, b.rgb)
+            np.testing.assert_array_equal(a.depth_m, b.depth_m)
+            np.testing.assert_array_equal(a.extra["segmentation"], b.extra["segmentation"])
+            np.testing.assert_array_equal(a.T_world_camera, b.T_world_camera)
 
 
 def simulate(out, seed: int) -> dict:
