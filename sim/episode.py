@@ -402,11 +402,13 @@ class Episode:
                     else:
                         yield from self._marked((m, rows) for m in out)
                     out = []
-                    if len(flight) == len(workers):
-                        yield from self._landed(flight.popleft())
+                    # the oldest frame is collected before this one starts and handed out after, so its
+                    # consumer works while the worker draws
+                    landed = self._landed(flight.popleft()) if len(flight) == len(workers) else []
                     worker = workers[submitted % len(workers)]
                     submitted += 1
                     flight.append([worker, *self._submit_frame(t, T_world_base, worker), rows, []])
+                    yield from self._marked(landed)
             if flight:
                 flight[-1][4].extend((m, rows) for m in out)
             else:
@@ -417,15 +419,16 @@ class Episode:
             self.robot.command(v, w, self.dt)
             p.stepSimulation(physicsClientId=self.client)
         while flight:
-            yield from self._landed(flight.popleft())
+            yield from self._marked(self._landed(flight.popleft()))
         self.groundtruth_rows = len(self.groundtruth)
         self.wall_seconds = time.perf_counter() - wall0
         self.sim_seconds = steps * self.dt
 
-    def _landed(self, entry):
-        """A drawn frame (collected from its worker), then the messages made after it."""
+    def _landed(self, entry) -> list:
+        """A drawn frame (collected from its worker now), then the messages made after it, with their
+        ground-truth rows."""
         worker, t, T_world_cam, rows, after = entry
-        yield from self._marked([(self._collect_frame(t, T_world_cam, worker), rows)] + after)
+        return [(self._collect_frame(t, T_world_cam, worker), rows)] + after
 
     def _marked(self, pairs):
         for msg, rows in pairs:

@@ -87,6 +87,17 @@ def test_render_worker_gives_the_same_frames_in_the_same_order():
             np.testing.assert_array_equal(a.T_world_camera, b.T_world_camera)
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_render_workers_draw_while_the_consumer_works(workers):
+    """When a frame is handed out, every worker is already drawing a later one (but at the end), so
+    the consumer's work on it overlaps the rendering."""
+    sc = load_scenario(None)
+    with Episode(sc, seed=5, duration=0.85, render_worker=workers) as ep:
+        busy = [sum(w._in_flight for w in ep._render_workers) for m in ep.frames() if isinstance(m, CameraFrame)]
+    assert len(busy) == 9
+    assert busy[:-workers] == [workers] * (9 - workers)
+
+
 def simulate(out, seed: int) -> dict:
     assert cli_main(["simulate", "--out", str(out), "--seed", str(seed), "--duration", "0.5"]) == 0
     return json.loads((out / "summary.json").read_text())
