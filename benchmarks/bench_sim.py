@@ -85,8 +85,8 @@ def run_variant(sc, duration: float, camera_on: bool, lidar_on: bool, worker: bo
         for msg in ep.frames():
             if isinstance(msg, CameraFrame):
                 counts["camera"] += 1
-                if ep._render_worker is not None:
-                    worker_cpu.append(ep._render_worker.worker_cpu_seconds)
+                if ep._render_workers:
+                    worker_cpu.append(sum(w.worker_cpu_seconds for w in ep._render_workers))
             elif isinstance(msg, LidarScan):
                 counts["lidar"] += 1
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0

@@ -258,14 +258,12 @@ class Episode:
         self.camera_info = default_camera_info(s.camera_width, s.camera_height)
         if render_worker is None:
             render_worker = os.environ.get("DOPESLAM_RENDER_WORKER", "0") == "1"
-        self._render_worker = None
         self._render_workers: list[RenderWorker] = []
         if self.sc.events:  # the worker's world would not follow the events
             render_worker = False
         if self.use_camera and render_worker:  # started first: they build their worlds while this one does
             self._render_workers = [RenderWorker(self.sc, self.camera_info, renderer, segmentation=self.segmentation)
                                     for _ in range(max(1, int(render_worker)))]
-            self._render_worker = self._render_workers[0]
         ss = np.random.SeedSequence(self.seed)
         self.rng_lidar, self.rng_camera, self.rng_odom = (np.random.default_rng(c) for c in ss.spawn(3))
         self.client, self.renderer = new_client(renderer if self.use_camera else "tiny")  # no EGL without a camera
@@ -341,7 +339,7 @@ class Episode:
     def close(self) -> None:
         for worker in getattr(self, "_render_workers", []):
             worker.close()
-        self._render_workers, self._render_worker = [], None
+        self._render_workers = []
         if self.client is not None:
             p.disconnect(self.client)
             self.client = None

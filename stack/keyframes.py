@@ -38,6 +38,11 @@ class KeyframeSettings:
         return self.min_motion_m > 0 or self.min_turn_deg > 0
 
 
+def keyframe_gate(settings: KeyframeSettings | None) -> "KeyframeGate | None":
+    """A gate for ``settings``, or None when there are none or they are off (every image passes)."""
+    return KeyframeGate(settings) if settings is not None and settings.enabled else None
+
+
 class KeyframeGate:
     """Feed it the wheel odometry (``on_wheel_odometry``) and ask, per image, ``passes(frame)``.
 

@@ -31,7 +31,7 @@ import numpy as np
 from stack.evidence import carry_views, count_views
 from stack.fusion import fuse
 from stack.interfaces import Detector, LoopCloser, Odometry
-from stack.keyframes import KeyframeGate, KeyframeSettings
+from stack.keyframes import KeyframeSettings, keyframe_gate
 from stack.lidar_slam import WheelOdometryTrack
 from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
 from stack.object_store import ObjectStore, Observation
@@ -127,7 +127,7 @@ class DopeSlam:
         self.policy = policy
         self.loop_closer = loop_closer
         self.detect_every = int(detect_every)
-        self.keyframes = KeyframeGate(keyframes) if keyframes is not None and keyframes.enabled else None
+        self.keyframes = keyframe_gate(keyframes)
         self.keep_observations = keep_observations
         self.on_fused_image = on_fused_image
         self.map_objects = map_objects

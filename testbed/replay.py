@@ -101,10 +101,10 @@ class DetectionAhead:
 
     def __init__(self, open_reader: Callable[[], BagReader], detector, dope_every: int = 1, maxsize: int = 16,
                  keyframes=None):
-        from stack.keyframes import KeyframeGate
+        from stack.keyframes import keyframe_gate
 
         self._open, self._detector, self._every = open_reader, detector, dope_every
-        self.gate = KeyframeGate(keyframes) if keyframes is not None and keyframes.enabled else None
+        self.gate = keyframe_gate(keyframes)
         self._queue: queue.Queue = queue.Queue(maxsize)
         self._stop = threading.Event()
         self.read_seconds = 0.0
@@ -246,7 +246,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                 log.warning("%s: no colour images: the loop closer uses LiDAR key frames only", bag.path)
 
         pipe = DopeSlam(odom, None if parallel else detector, bag.T_base_camera, dims, policy, loop_closer=lc,
-                        detect_every=dope_every, keep_observations=keep_detections, keyframes=keyframes)
+                        detect_every=dope_every, keep_observations=keep_detections,
+                        keyframes=None if parallel else keyframes)  # in parallel the detection thread gates
         dlog = DetectionLog()
         unscored_frames = 0  # detected images whose per-image truth is missing (lost with a damaged chunk)
         all_dets: list = []

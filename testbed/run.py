@@ -171,10 +171,10 @@ class _Ahead:
         twin in a child process (then no thread; the caller closes it). ``keyframes``: the pipeline's
         :class:`stack.keyframes.KeyframeSettings`; a gate of its own, fed the same messages in the same
         order, passes the same images as the pipeline's."""
-        from stack.keyframes import KeyframeGate
-
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
+
+        from stack.keyframes import keyframe_gate
 
         self._messages, self._detector, self._every = messages, detector, max(1, int(every))
         self._ahead = max(1, int(images_ahead))
@@ -183,7 +183,7 @@ class _Ahead:
             ThreadPoolExecutor(max_workers=1, thread_name_prefix="run-detection")
         self._queue: deque = deque()
         self._images = 0
-        self._gate = KeyframeGate(keyframes) if keyframes is not None and keyframes.enabled else None
+        self._gate = keyframe_gate(keyframes)
         self.wait_seconds = 0.0  # the pipeline's wait for a detection (not simulation time)
 
     def _detect(self, frame):
