@@ -25,7 +25,10 @@ The floors, measured on the same machine and the same data:
   gave), times the sweep rate.
 
     python benchmarks/bench_stages.py [--scenario NAME] [--duration S] [--seed N] [--profile full|fast]
-        [--precision fp32|bf16]
+        [--precision fp32|bf16] [--set KEY=VALUE ...]
+
+``--set`` takes any config key, e.g. ``--set detector.keyframe_m=0.1 --set detector.keyframe_deg=5``
+(the keyframe gate: the network on the images the gate lets through only).
 """
 from __future__ import annotations
 
@@ -134,7 +137,9 @@ def kiss_floor(scans, config) -> float:
     return (time.process_time() - t0) / max(len(scans), 1)
 
 
-def measure(scenario=None, duration=None, seed=0, profile: str = "full", precision: str | None = None) -> dict:
+def measure(scenario=None, duration=None, seed=0, profile: str = "full", precision: str | None = None,
+            sets: tuple[str, ...] = ()) -> dict:
+    """``sets``: config keys (``KEY=VALUE``) over the shipped config; ``precision`` is one more."""
     os.environ.setdefault("DOPESLAM_RENDER_WORKER", "0")  # render here, so the rendering's CPU is counted
     from sim.episode import Episode
     from stack.dope_fpr import DopeDetector
@@ -177,10 +182,12 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
         with tempfile.TemporaryDirectory() as tmp:
             w0, c0 = time.perf_counter(), time.process_time()
             config = None
-            if precision is not None:  # the shipped config with the network's precision set
+            sets = [*sets, *([f"detector.precision={precision}"] if precision is not None else [])]
+            if sets:  # the shipped config with these keys set
+                from stack.config import resolve_config
                 from testbed.settings import RunConfig
 
-                config = RunConfig(detector={"precision": precision})
+                config = resolve_config(sets=sets, model=RunConfig)
             r = run_episode(scenario, out_dir=tmp, seed=seed, duration=duration, write_outputs=False, profile=profile,
                             sequential=True, config=config)  # one stage at a time: the meter's CPU deltas are each stage's own
             cpu, wall = time.process_time() - c0, time.perf_counter() - w0
@@ -248,11 +255,19 @@ def main(argv=None) -> int:
     ap.add_argument("--precision", choices=["fp32", "bf16"], default=None,
                     help="the DOPE network's arithmetic (default: the detector's default; bf16 runs fp32 on a CPU "
                          "without native bfloat16)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config key, e.g. detector.keyframe_m=0.1 (repeatable)")
     args = ap.parse_args(argv)
     if args.duration is not None and args.duration <= 0:
         print(f"--duration: expected seconds > 0, got {args.duration}", file=sys.stderr)
         return 2
-    m = measure(args.scenario, args.duration, args.seed, args.profile, args.precision)
+    from stack.config import ConfigError
+
+    try:
+        m = measure(args.scenario, args.duration, args.seed, args.profile, args.precision, tuple(args.set))
+    except ConfigError as e:
+        print(f"bench_stages: {e}", file=sys.stderr)
+        return 2
     ls = m["labels"]
     print(f"profile {args.profile}: {m['sim_s']:.0f} s simulated, {m['images']} images, {m['scans']} sweeps, network {m['precision']}; {m['cpu_s']:.1f} CPU s, "
           f"{m['wall_s']:.1f} wall s; torch threads {os.environ.get('DOPESLAM_TORCH_THREADS', 'default')}; "

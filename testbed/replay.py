@@ -3,8 +3,9 @@ pipeline (:class:`stack.pipeline.DopeSlam`) gets its scans, images and wheel odo
 as ``dopeslam run`` gives it the simulator's, with the same rule for images that wait for a pose.
 
 The detector needs no pose, so by default it runs ahead of the pipeline on a second reader of the
-same bag, in a thread (:class:`DetectionAhead`, the paper's loose coupling, section 3.3); the
-pipeline then fuses each image's detections when its turn in the stream comes. ``parallel=False``
+same bag (the paper's loose coupling, section 3.3): the bundled DOPE detector in a child process
+(:mod:`testbed.replay_detection`), any other in a thread (:class:`DetectionAhead`); the pipeline
+then fuses each image's detections when its turn in the stream comes. ``parallel=False``
 (``--sequential``) runs the detector in the message loop instead.
 
 The outputs are those of ``dopeslam run`` (report.json, labels.xlsx/.json, TUM trajectories,
@@ -162,6 +163,33 @@ class DetectionAhead:
         self._thread.join(timeout=30)
 
 
+def detection_ahead(bag_path, bag: BagReader, topics: BagTopics, input_mode: str, detector, dope_every: int,
+                    keyframes):
+    """Replay's detector side, ahead of the pipeline: in a child process of its own
+    (:class:`testbed.replay_detection.DetectionReaderProcess`) for a DOPE detector that
+    :func:`testbed.run.make_detector` made, unless ``DOPESLAM_DETECTOR_PROCESS=0``; in a thread
+    (:class:`DetectionAhead`) for any other detector. The same images, detections and counts
+    either way."""
+    from testbed.run import made_from
+    from testbed.settings import detection_process_wanted
+
+    kwargs = made_from(detector)
+    if kwargs is not None and bag.camera_info is not None and detection_process_wanted():
+        from stack.config import torch_threads
+        from testbed.replay_detection import DetectionReaderProcess
+
+        threads = torch_threads() or REPLAY_DETECTOR_THREADS.get(input_mode)
+        return DetectionReaderProcess(bag_path, topics, input_mode, kwargs, bag.camera_info, dope_every,
+                                      keyframes, threads=threads)
+    return DetectionAhead(lambda: open_bag(bag_path, topics, input_mode), detector, dope_every, keyframes=keyframes)
+
+
+# torch threads of replay's detector process unless DOPESLAM_TORCH_THREADS says: one for colour input
+# (as fast as two on two cores, for less CPU); torch's own count for depth input, whose several windows
+# per image make the network the longest path (docs/speed.md)
+REPLAY_DETECTOR_THREADS = {"rgb": 1, "depth": None}
+
+
 def _merged(sensors, images):
     """Scans and wheel odometry (``sensors``) and detected images (``images``) in stamp order; at one
     stamp the sensor message first."""
@@ -201,7 +229,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     ``stages``, ``fpr``, ``weights``). ``odometry``: an :class:`stack.interfaces.Odometry`, or a
     name for :func:`stack.interfaces.load_odometry` (default: KISS-ICP, with ``odometry_config``, a
     :class:`stack.lidar_slam.LidarOdometryConfig`, or the defaults). ``parallel``: the detector
-    runs on a second reader in a thread, ahead of the pipeline (else in the message loop).
+    runs on a second reader ahead of the pipeline, in a child process or a thread
+    (:func:`detection_ahead`; else in the message loop).
     ``loop_closure``: the loop closer rides along (key frames from the colour images, scans); the
     corrected trajectory then places the labels, and replaces the odometry's in the outputs (the
     odometry-only ATE is reported beside it when the bag has ground truth). ``odometry_only``: the
@@ -254,8 +283,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         scans = 0
         read_s = 0.0
         if parallel:
-            ahead = DetectionAhead(lambda: open_bag(bag_path, topics, input_mode), detector, dope_every,
-                                   keyframes=keyframes)
+            ahead = detection_ahead(bag_path, bag, topics, input_mode, detector, dope_every, keyframes)
             stream = _merged(bag.frames(lidar=True, camera=False, odometry=True), ahead)
         else:
             stream = ((m.stamp, 0, m, None) for m in bag.frames(lidar=True, camera=not odometry_only, odometry=True))
@@ -317,7 +345,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             "ground_truth": {"trajectory": gt is not None, "objects": bool(gt is not None and gt.objects),
                              "images": truth is not None},
             "bag_seconds": span, "wall_seconds": wall, "real_time_factor": span / wall if wall > 0 else None,
-            "parallel_passes": parallel, "detector": "none" if detector is None else detector_name(detector),
+            "parallel_passes": parallel, "detector_process": ahead is not None and not isinstance(ahead, DetectionAhead),
+            "detector": "none" if detector is None else detector_name(detector),
             "network_precision": getattr(detector, "precision", None),
             "odometry_class": detector_name(odom), "odometry_only": odometry_only,
             "time_split_s": {"odometry": pipe.timing["odometry"], "odometry_reading": read_s,

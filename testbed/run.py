@@ -14,6 +14,7 @@ import contextlib
 import logging
 import math
 import time
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -125,7 +126,22 @@ def make_detector(input_mode: str, stages: int, fpr: bool, weights=None, config=
     ``DOPESLAM_TORCH_THREADS`` is unset (None: torch's default)."""
     from testbed.detection_process import build_detector
 
-    return build_detector(detector_kwargs(input_mode, stages, fpr, weights, config), torch_threads() or threads)
+    kwargs = detector_kwargs(input_mode, stages, fpr, weights, config)
+    detector = build_detector(kwargs, torch_threads() or threads)
+    _MADE[detector] = kwargs
+    return detector
+
+
+_MADE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # detector -> the kwargs make_detector built it from
+
+
+def made_from(detector) -> dict | None:
+    """The :func:`detector_kwargs` a detector was made from by :func:`make_detector` (a child process
+    can build its twin from them), or None for any other detector."""
+    try:
+        return _MADE.get(detector)
+    except TypeError:  # not weakly referenceable: not one make_detector made
+        return None
 
 
 def ahead_settings(sequential: bool, detector) -> tuple[bool, bool]:

@@ -12,12 +12,14 @@ reads its two itself):
 
     DOPESLAM_CACHE          root of the caches (default ~/.cache/dopeslam): perception/, vocabulary/,
                             topomap_streams/; the simulator keeps its textures in assets/ under it
-    DOPESLAM_DETECTOR_PROCESS  0: where testbed.run runs the DOPE detector ahead, in a thread instead
+    DOPESLAM_DETECTOR_PROCESS  0: where testbed.run runs the DOPE detector ahead, and where replay
+                            reads and detects the images beside the odometry, in a thread instead
                             of a child process (read by detection_process_wanted)
     DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode;
                             unset: on where testbed.run runs the detector ahead, else off)
     DOPESLAM_TORCH_THREADS  torch threads of the detector (read by stack.config.torch_threads;
-                            unset: 1 where testbed.run runs the detector ahead, else torch's)
+                            unset: 1 where testbed.run runs the detector ahead and in replay's
+                            detector process for colour input, else torch's)
 
 Configuration keys come from ``DOPESLAM_SECTION__KEY`` variables (a double underscore), see
 :mod:`stack.config`.
@@ -83,7 +85,8 @@ def profile_sensors(profile: str, camera_rate: float, needs_segmentation: bool) 
 
 def detection_process_wanted(environ: Mapping[str, str] | None = None) -> bool:
     """``DOPESLAM_DETECTOR_PROCESS``: ``0`` runs the DOPE detector that ``testbed.run`` runs ahead of
-    the pipeline in a thread; anything else or unset, in a child process (:mod:`testbed.detection_process`)."""
+    the pipeline, and replay's image reading and detection, in a thread; anything else or unset, in a
+    child process (:mod:`testbed.detection_process`, :mod:`testbed.replay_detection`)."""
     environ = os.environ if environ is None else environ
     return environ.get("DOPESLAM_DETECTOR_PROCESS", "").strip() != "0"
 

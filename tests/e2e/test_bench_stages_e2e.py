@@ -28,3 +28,16 @@ def test_bench_stages_meters_the_network_in_its_precision(capsys, monkeypatch):
     out = capsys.readouterr().out
     runs = "bf16" if bf16_native() else "fp32"
     assert f"network {runs}" in out and f"({runs} matmul)" in out
+
+
+@pytest.mark.slow
+def test_bench_stages_takes_config_keys(capsys, monkeypatch):
+    """``--set detector.keyframe_m=...``: the keyframe gate holds most images of a standing robot from
+    the network (the network's floor counts only the images it ran on)."""
+    import re
+
+    monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "1")
+    assert _load().main(["--duration", "1.5", "--set", "detector.keyframe_m=0.1",
+                         "--set", "detector.keyframe_deg=5"]) == 0
+    images = int(re.search(r"simulated, (\d+) images", capsys.readouterr().out).group(1))
+    assert 1 <= images <= 3  # of 16: the first, then one a second

@@ -242,3 +242,57 @@ def test_the_mcap_summary_carries_its_crc_and_damage_there_sends_the_reader_to_t
     assert "summary CRC mismatch" in caplog.text
     with pytest.raises(CorruptBagError, match="summary CRC mismatch"):
         BagReader(path, require_camera=False, salvage="never").open()
+
+
+def test_the_detection_process_counts_a_bad_image_as_the_thread_does(tmp_path, monkeypatch):
+    """Replay's detector process (a DOPE detector ``make_detector`` made) reads the images on a reader
+    of its own: its bad messages count in the report as the thread's do, and ``--max-bad-messages``
+    stops it with the same error."""
+    from testbed.run import make_detector
+
+    path = tmp_path / "run"
+    _bag_with_image_truth(path, bad_image=10)
+    reports = {}
+    for mode in ("1", "0"):
+        monkeypatch.setenv("DOPESLAM_DETECTOR_PROCESS", mode)
+        reports[mode] = replay_bag(path, tmp_path / f"out{mode}", detector=make_detector("rgb", 1, True),
+                                   odometry="wheel", write_outputs=False)
+        with pytest.raises(TooManyBadMessagesError, match="1 bad messages on /camera/color/image_raw"):
+            replay_bag(path, tmp_path / f"stop{mode}", detector=make_detector("rgb", 1, True), odometry="wheel",
+                       write_outputs=False, topics=BagTopics(max_bad_messages=0))
+    assert reports["1"]["detector_process"] and not reports["0"]["detector_process"]
+    assert reports["1"]["bad_messages"] == reports["0"]["bad_messages"]
+    assert reports["1"]["detection"]["frames"] == reports["0"]["detection"]["frames"]
+
+
+def test_the_detection_process_sends_other_sizes_inline_and_stops_when_closed(tmp_path):
+    """Images of another size than the camera the slots were made for come back inline, the same
+    pixels; closing before the last image stops the child at once."""
+    import time
+
+    from stack.messages import CameraInfo
+    from testbed.detection_process import build_detector
+    from testbed.replay_detection import DetectionReaderProcess
+    from testbed.run import detector_kwargs
+
+    path = tmp_path / "run"
+    msgs, frames = _bag_with_image_truth(path)
+    kwargs = detector_kwargs("rgb", 1, True)
+    other = CameraInfo(8, 6, np.eye(3))
+    ahead = DetectionReaderProcess(path, BagTopics(), "rgb", kwargs, other, dope_every=2)
+    got = list(ahead)
+    ahead.close()
+    assert [round(f.stamp, 6) for f, _, _ in got] == [round(f.stamp, 6) for f in frames]
+    for (f, dets, _), want in zip(got, frames):
+        np.testing.assert_array_equal(f.rgb, want.rgb)
+    assert [dets is not None for _, dets, _ in got] == [i % 2 == 0 for i in range(len(frames))]
+    detector = build_detector(kwargs, 1)
+    assert [len(d) for _, d, _ in got[::2]] == [len(detector.detect(f)) for f, _, _ in got[::2]]
+    assert ahead.gate is None and ahead.reader.bad_message_summary() == {}
+    with BagReader(path) as bag:
+        info = bag.camera_info
+    ahead = DetectionReaderProcess(path, BagTopics(), "rgb", kwargs, info, slots=2)
+    first = next(iter(ahead))
+    t0 = time.perf_counter()
+    ahead.close()
+    assert time.perf_counter() - t0 < 5 and first[0].rgb.shape == frames[0].rgb.shape

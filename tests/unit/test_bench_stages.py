@@ -28,3 +28,9 @@ def test_meter_excludes_inner_stages():
 def test_bad_duration_is_one_line_error(capsys):
     assert _load().main(["--duration", "-1"]) == 2
     assert "--duration" in capsys.readouterr().err
+
+
+def test_bad_config_key_is_one_line_error(capsys):
+    assert _load().main(["--duration", "0.1", "--set", "detector.no_such_key=1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bench_stages: ") and "no_such_key" in err and "Traceback" not in err

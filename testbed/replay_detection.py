@@ -1,0 +1,239 @@
+"""Replay's detector side in a child process: it opens the bag on a reader of its own, reads and
+decodes the images (and the wheel odometry the keyframe gate reads), gates them, runs the DOPE
+detector, and hands each image with its detections to the pipeline in the parent.
+
+In a thread of the parent this work shares the interpreter's lock with the pipeline, and KISS-ICP
+keeps that lock for the whole of each registration call, so the detector's Python steps (the bag's
+parser, peak decoding, PnP, FPR) wait for the odometry and the odometry for them. In a process of its
+own it waits only for a core (docs/speed.md). The images come back through shared memory (a ring of
+slots the parent frees as it copies them out); everything else as JSON lines (no pickling); a
+detection decodes to the same values and types the detector made.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from multiprocessing import shared_memory
+from types import SimpleNamespace
+
+import numpy as np
+
+from sim.child import ChildOwner, package_env
+from stack.messages import CameraFrame, CameraInfo
+from testbed.detection_process import decode_detection, decode_value, encode_detection, encode_value
+
+_TOPIC_FIELDS = ("lidar", "rgb", "depth", "camera_info", "base_frame", "max_bad_messages")
+_POSE_FIELDS = ("T_base_lidar", "T_base_camera")
+
+
+def _topics_json(topics) -> dict:
+    out = {f: getattr(topics, f) for f in _TOPIC_FIELDS}
+    out.update({f: None if getattr(topics, f) is None else np.asarray(getattr(topics, f), float).tolist()
+                for f in _POSE_FIELDS})
+    return out
+
+
+def _topics_from_json(d: dict):
+    from testbed.replay import BagTopics
+
+    return BagTopics(**{f: d[f] for f in _TOPIC_FIELDS},
+                     **{f: None if d[f] is None else np.asarray(d[f], dtype=float) for f in _POSE_FIELDS})
+
+
+def _error_json(exc: BaseException) -> dict:
+    from testbed.bags.errors import BagError
+
+    if isinstance(exc, BagError):
+        return {"bag_error": type(exc).__name__, "path": str(exc.path), "message": exc.message}
+    return {"error": f"{type(exc).__name__}: {exc}"}
+
+
+def _raise_error(reply: dict):
+    """The child's error raised here: a bag error as the same class with the same text (so the
+    command prints the one line it would have printed), anything else as a RuntimeError."""
+    from testbed.bags import errors
+
+    name = reply.get("bag_error")
+    if name is not None:
+        cls = getattr(errors, name, None)
+        if not (isinstance(cls, type) and issubclass(cls, errors.BagError)):
+            cls = errors.BagReadError
+        exc = cls.__new__(cls)
+        errors.BagError.__init__(exc, reply["path"], reply["message"])
+        raise exc
+    raise RuntimeError(f"replay's detection process: {reply.get('error', 'exited')}")
+
+
+class DetectionReaderProcess(ChildOwner):
+    """The twin of :class:`testbed.replay.DetectionAhead` in a child process.
+
+    ``kwargs``: the DOPE detector's (:func:`testbed.run.detector_kwargs`); ``info``: the bag's camera
+    (the shared slots' size; an image of another size comes back inline). Iterating gives ``(frame,
+    detections or None when not detected, seconds)`` in image order. After the last image: ``gate``
+    (``.held``: images the keyframe gate kept from the detector; None without a gate), ``reader``
+    (the child reader's ``salvaged``, ``skipped_chunks`` and ``bad_message_summary()``) and
+    ``read_seconds`` (the child's time reading and decoding)."""
+
+    def __init__(self, bag_path, topics, input_mode: str, kwargs: dict, info: CameraInfo,
+                 dope_every: int = 1, keyframes=None, threads: int | None = 1, slots: int = 8):
+        H, W = info.height, info.width
+        self._shape = (H, W)
+        self._slot_bytes = H * W * 3 + H * W * 4
+        self._shm = shared_memory.SharedMemory(create=True, size=self._slot_bytes * int(slots))
+        reply_r, reply_w = os.pipe()
+        cmd = [sys.executable, "-c", "from testbed.replay_detection import _child_main; _child_main()", str(reply_w)]
+        try:
+            out = sys.stderr.fileno()  # what the child prints goes where this process's logs go
+        except (AttributeError, OSError, ValueError):
+            out = subprocess.DEVNULL
+        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=out, pass_fds=(reply_w,), env=package_env())
+        os.close(reply_w)
+        self._replies = os.fdopen(reply_r, "rb")
+        ks = None if keyframes is None else {"min_motion_m": keyframes.min_motion_m,
+                                             "min_turn_deg": keyframes.min_turn_deg,
+                                             "max_interval_s": keyframes.max_interval_s}
+        self._send({"bag": str(bag_path), "topics": _topics_json(topics), "input": input_mode,
+                    "kwargs": encode_value(kwargs), "threads": threads, "every": int(dope_every),
+                    "keyframes": ks, "shm": self._shm.name, "height": H, "width": W, "slots": int(slots)})
+        self.gate = None
+        self.reader = None
+        self.read_seconds = 0.0
+
+    def _send(self, obj) -> bool:
+        """False when the child has gone (what it left on the reply pipe says why)."""
+        try:
+            self._proc.stdin.write(json.dumps(obj).encode() + b"\n")
+            self._proc.stdin.flush()
+            return True
+        except (BrokenPipeError, OSError, AttributeError):
+            return False
+
+    def _fail(self, reply: dict):
+        self.close()
+        _raise_error(reply)
+
+    def __iter__(self):
+        H, W = self._shape
+        while True:
+            line = self._replies.readline() if self._replies is not None else b""
+            if not line:
+                self._fail({"error": "exited"})
+            reply = json.loads(line)
+            if "error" in reply or "bag_error" in reply:
+                self._fail(reply)
+            if "end" in reply:
+                end = reply["end"]
+                self.read_seconds = float(end["read_seconds"])
+                self.gate = None if end["held"] is None else SimpleNamespace(held=int(end["held"]))
+                bad = end["bad_messages"]
+                self.reader = SimpleNamespace(salvaged=end["salvaged"], skipped_chunks=end["skipped_chunks"],
+                                              bad_message_summary=lambda bad=bad: bad)
+                return
+            f = reply.get("frame")
+            if f is None:
+                continue  # "ready"
+            slot = f["slot"]
+            if slot is None:  # not the slots' size: sent inline
+                rgb, depth = decode_value(f["rgb"]), decode_value(f["depth"])
+            else:
+                base = slot * self._slot_bytes
+                rgb = np.ndarray((H, W, 3), np.uint8, self._shm.buf, base).copy() if f["rgb"] else None
+                depth = np.ndarray((H, W), np.float32, self._shm.buf, base + H * W * 3).copy() if f["depth"] else None
+                self._send({"free": slot})
+            info = CameraInfo(int(f["width"]), int(f["height"]), decode_value(f["K"]), f["frame_id"])
+            frame = CameraFrame(f["stamp"], info, rgb, depth, decode_value(f["T"]), decode_value(f["extra"]))
+            dets = None if f["dets"] is None else [decode_detection(d) for d in f["dets"]]
+            self.read_seconds = float(f["read_seconds"])
+            yield frame, dets, float(f["seconds"])
+
+    def close(self) -> None:
+        replies, self._replies = getattr(self, "_replies", None), None
+        if replies is not None:  # first, so a child blocked writing to it stops at once
+            replies.close()
+        super().close()
+
+
+def _child_main() -> None:
+    from multiprocessing import resource_tracker
+
+    from stack.keyframes import KeyframeSettings, keyframe_gate
+    from testbed.detection_process import build_detector
+    from testbed.replay import open_bag
+
+    out = os.fdopen(int(sys.argv[1]), "wb")
+    requests = sys.stdin.buffer
+
+    def reply(obj):
+        out.write(json.dumps(obj).encode() + b"\n")
+        out.flush()
+
+    reader = None
+    try:
+        setup = json.loads(requests.readline())
+        shm = shared_memory.SharedMemory(name=setup["shm"])
+        resource_tracker.unregister(shm._name, "shared_memory")  # the parent owns (and unlinks) it
+        H, W, slots = setup["height"], setup["width"], setup["slots"]
+        slot_bytes = H * W * 3 + H * W * 4
+        free = list(range(slots))
+        detector = build_detector(decode_value(setup["kwargs"]), setup["threads"])
+        gate = keyframe_gate(None if setup["keyframes"] is None else KeyframeSettings(**setup["keyframes"]))
+        every = max(1, int(setup["every"]))
+        reader = open_bag(setup["bag"], _topics_from_json(setup["topics"]), setup["input"])
+        reply({"ready": True})
+        frames = reader.camera_frames() if gate is None else \
+            reader.frames(lidar=False, camera=True, odometry=True)  # the gate reads the wheel odometry
+        read_s, t_last, i = 0.0, time.perf_counter(), -1
+        for frame in frames:
+            if not isinstance(frame, CameraFrame):
+                gate.on_wheel_odometry(frame)
+                continue
+            i += 1
+            t0 = time.perf_counter()
+            read_s += t0 - t_last
+            run = i % every == 0 and (gate is None or gate.passes(frame))
+            dets = list(detector.detect(frame)) if run else None
+            seconds = time.perf_counter() - t0
+            info = frame.info
+            rgb, depth = frame.rgb, frame.depth_m
+            fits = (rgb is None or (rgb.dtype == np.uint8 and rgb.shape == (H, W, 3))) and \
+                (depth is None or (depth.dtype == np.float32 and depth.shape == (H, W)))
+            msg = {"stamp": frame.stamp, "width": info.width, "height": info.height,
+                   "K": encode_value(np.asarray(info.K)), "frame_id": info.frame_id,
+                   "T": encode_value(frame.T_world_camera), "extra": encode_value(frame.extra),
+                   "dets": None if dets is None else [encode_detection(d) for d in dets],
+                   "seconds": seconds, "read_seconds": read_s}
+            if fits:
+                while not free:  # every slot still being copied out: wait for the parent
+                    line = requests.readline()
+                    if not line:
+                        return  # the parent is gone
+                    free.append(int(json.loads(line)["free"]))
+                slot = free.pop(0)
+                base = slot * slot_bytes
+                if rgb is not None:
+                    np.ndarray((H, W, 3), np.uint8, shm.buf, base)[...] = rgb
+                if depth is not None:
+                    np.ndarray((H, W), np.float32, shm.buf, base + H * W * 3)[...] = depth
+                msg.update(slot=slot, rgb=rgb is not None, depth=depth is not None)
+            else:
+                msg.update(slot=None, rgb=encode_value(rgb), depth=encode_value(depth))
+            reply({"frame": msg})
+            t_last = time.perf_counter()
+        reply({"end": {"held": None if gate is None else gate.held, "read_seconds": read_s,
+                       "salvaged": reader.salvaged, "skipped_chunks": reader.skipped_chunks,
+                       "bad_messages": reader.bad_message_summary()}})
+        for _ in requests:  # the parent's last "free" lines, until it closes the pipe
+            pass
+    except (BrokenPipeError, KeyboardInterrupt):
+        return  # the parent stopped reading
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises
+        try:
+            reply(_error_json(exc))
+        except (BrokenPipeError, OSError):
+            pass
+    finally:
+        if reader is not None:
+            reader.close()
