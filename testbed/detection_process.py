@@ -76,6 +76,23 @@ def decode_detection(d: dict) -> Detection:
 
 # --- the parent's side ------------------------------------------------------------------------------
 
+def start_child(module: str):
+    """``(process, reply pipe)``: ``python -c "from MODULE import _child_main; _child_main()" FD``, its
+    requests on its stdin, its replies on a pipe of their own (FD; nothing a library prints reaches
+    it), what it prints where this process's logs go."""
+    reply_r, reply_w = os.pipe()
+    cmd = [sys.executable, "-c", f"from {module} import _child_main; _child_main()", str(reply_w)]
+    try:
+        out = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):
+        out = subprocess.DEVNULL
+    try:
+        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=out, pass_fds=(reply_w,), env=package_env())
+    finally:
+        os.close(reply_w)
+    return proc, os.fdopen(reply_r, "rb")
+
+
 class _Pending:
     """A detection job in the child: ``result()`` gives ``(detections, seconds)`` as a Future would."""
 
@@ -102,15 +119,7 @@ class DetectionProcess(ChildOwner):
         self._slots = int(slots)
         self._shm = shared_memory.SharedMemory(create=True, size=self._slot_bytes * self._slots)
         self._shape = (H, W)
-        reply_r, reply_w = os.pipe()  # replies on a pipe of their own: nothing a library prints reaches it
-        cmd = [sys.executable, "-c", "from testbed.detection_process import _child_main; _child_main()", str(reply_w)]
-        try:
-            out = sys.stderr.fileno()  # what the child prints goes where this process's logs go
-        except (AttributeError, OSError, ValueError):
-            out = subprocess.DEVNULL
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=out, pass_fds=(reply_w,), env=package_env())
-        os.close(reply_w)
-        self._replies = os.fdopen(reply_r, "rb")
+        self._proc, self._replies = start_child("testbed.detection_process")
         setup = {"kwargs": encode_value(kwargs), "threads": threads, "shm": self._shm.name,
                  "height": H, "width": W, "slots": self._slots}
         self._send(setup)

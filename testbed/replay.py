@@ -91,6 +91,25 @@ class BagImageTruth:
 
 # --- the message stream ---------------------------------------------------------------------------
 
+def detected_images(reader: BagReader, detector, every: int, gate):
+    """Per image of ``reader``: ``(frame, detections or None when not detected, seconds reading it,
+    seconds detecting)``. The detector runs on every ``every``-th image that ``gate`` (a
+    :class:`stack.keyframes.KeyframeGate`, fed the bag's wheel odometry; None: every image) passes."""
+    frames = reader.camera_frames() if gate is None else reader.frames(lidar=False, camera=True, odometry=True)
+    t_last, i = time.perf_counter(), -1
+    for frame in frames:
+        if not isinstance(frame, CameraFrame):
+            gate.on_wheel_odometry(frame)
+            continue
+        i += 1
+        t0 = time.perf_counter()
+        run = i % every == 0 and (gate is None or gate.passes(frame))
+        dets = list(detector.detect(frame)) if run else None
+        t1 = time.perf_counter()
+        yield frame, dets, t0 - t_last, t1 - t0
+        t_last = time.perf_counter()
+
+
 class DetectionAhead:
     """The detector over a bag's images on a second reader, in a thread, ahead of the pipeline.
 
@@ -126,22 +145,9 @@ class DetectionAhead:
         try:
             reader = self.reader = self._open()
             try:
-                t_last = time.perf_counter()
-                gate = self.gate
-                frames = reader.camera_frames() if gate is None else \
-                    reader.frames(lidar=False, camera=True, odometry=True)  # the gate reads the wheel odometry
-                i = -1
-                for frame in frames:
-                    if not isinstance(frame, CameraFrame):
-                        gate.on_wheel_odometry(frame)
-                        continue
-                    i += 1
-                    t0 = time.perf_counter()
-                    self.read_seconds += t0 - t_last
-                    run = i % self._every == 0 and (gate is None or gate.passes(frame))
-                    dets = list(self._detector.detect(frame)) if run else None
-                    t_last = time.perf_counter()
-                    if not self._put((frame, dets, t_last - t0)):
+                for frame, dets, reading, seconds in detected_images(reader, self._detector, self._every, self.gate):
+                    self.read_seconds += reading
+                    if not self._put((frame, dets, seconds)):
                         return
             finally:
                 reader.close()

@@ -13,17 +13,15 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
-import time
 from multiprocessing import shared_memory
 from types import SimpleNamespace
 
 import numpy as np
 
-from sim.child import ChildOwner, package_env
+from sim.child import ChildOwner
 from stack.messages import CameraFrame, CameraInfo
-from testbed.detection_process import decode_detection, decode_value, encode_detection, encode_value
+from testbed.detection_process import decode_detection, decode_value, encode_detection, encode_value, start_child
 
 _TOPIC_FIELDS = ("lidar", "rgb", "depth", "camera_info", "base_frame", "max_bad_messages")
 _POSE_FIELDS = ("T_base_lidar", "T_base_camera")
@@ -83,15 +81,7 @@ class DetectionReaderProcess(ChildOwner):
         self._shape = (H, W)
         self._slot_bytes = H * W * 3 + H * W * 4
         self._shm = shared_memory.SharedMemory(create=True, size=self._slot_bytes * int(slots))
-        reply_r, reply_w = os.pipe()
-        cmd = [sys.executable, "-c", "from testbed.replay_detection import _child_main; _child_main()", str(reply_w)]
-        try:
-            out = sys.stderr.fileno()  # what the child prints goes where this process's logs go
-        except (AttributeError, OSError, ValueError):
-            out = subprocess.DEVNULL
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=out, pass_fds=(reply_w,), env=package_env())
-        os.close(reply_w)
-        self._replies = os.fdopen(reply_r, "rb")
+        self._proc, self._replies = start_child("testbed.replay_detection")
         ks = None if keyframes is None else {"min_motion_m": keyframes.min_motion_m,
                                              "min_turn_deg": keyframes.min_turn_deg,
                                              "max_interval_s": keyframes.max_interval_s}
@@ -161,7 +151,7 @@ def _child_main() -> None:
 
     from stack.keyframes import KeyframeSettings, keyframe_gate
     from testbed.detection_process import build_detector
-    from testbed.replay import open_bag
+    from testbed.replay import detected_images, open_bag
 
     out = os.fdopen(int(sys.argv[1]), "wb")
     requests = sys.stdin.buffer
@@ -183,19 +173,9 @@ def _child_main() -> None:
         every = max(1, int(setup["every"]))
         reader = open_bag(setup["bag"], _topics_from_json(setup["topics"]), setup["input"])
         reply({"ready": True})
-        frames = reader.camera_frames() if gate is None else \
-            reader.frames(lidar=False, camera=True, odometry=True)  # the gate reads the wheel odometry
-        read_s, t_last, i = 0.0, time.perf_counter(), -1
-        for frame in frames:
-            if not isinstance(frame, CameraFrame):
-                gate.on_wheel_odometry(frame)
-                continue
-            i += 1
-            t0 = time.perf_counter()
-            read_s += t0 - t_last
-            run = i % every == 0 and (gate is None or gate.passes(frame))
-            dets = list(detector.detect(frame)) if run else None
-            seconds = time.perf_counter() - t0
+        read_s = 0.0
+        for frame, dets, reading, seconds in detected_images(reader, detector, every, gate):
+            read_s += reading
             info = frame.info
             rgb, depth = frame.rgb, frame.depth_m
             fits = (rgb is None or (rgb.dtype == np.uint8 and rgb.shape == (H, W, 3))) and \
@@ -221,7 +201,6 @@ def _child_main() -> None:
             else:
                 msg.update(slot=None, rgb=encode_value(rgb), depth=encode_value(depth))
             reply({"frame": msg})
-            t_last = time.perf_counter()
         reply({"end": {"held": None if gate is None else gate.held, "read_seconds": read_s,
                        "salvaged": reader.salvaged, "skipped_chunks": reader.skipped_chunks,
                        "bad_messages": reader.bad_message_summary()}})
