@@ -169,25 +169,23 @@ class DetectionAhead:
         self._thread.join(timeout=30)
 
 
-def detection_ahead(bag_path, bag: BagReader, topics: BagTopics, input_mode: str, detector, dope_every: int,
-                    keyframes):
-    """Replay's detector side, ahead of the pipeline: in a child process of its own
-    (:class:`testbed.replay_detection.DetectionReaderProcess`) for a DOPE detector that
-    :func:`testbed.run.make_detector` made, unless ``DOPESLAM_DETECTOR_PROCESS=0``; in a thread
-    (:class:`DetectionAhead`) for any other detector. The same images, detections and counts
-    either way."""
+def detection_process(bag_path, topics: BagTopics, input_mode: str, detector, dope_every: int, keyframes):
+    """Replay's detector side, ahead of the pipeline, in a child process of its own
+    (:class:`testbed.replay_detection.DetectionReaderProcess`; its ``camera(info)`` still to be
+    called) for a DOPE detector that :func:`testbed.run.make_detector` made, unless
+    ``DOPESLAM_DETECTOR_PROCESS=0``; else None, and a thread (:class:`DetectionAhead`) runs it. The
+    same images, detections and counts either way."""
     from testbed.run import made_from
     from testbed.settings import detection_process_wanted
 
     kwargs = made_from(detector)
-    if kwargs is not None and bag.camera_info is not None and detection_process_wanted():
-        from stack.config import torch_threads
-        from testbed.replay_detection import DetectionReaderProcess
+    if kwargs is None or not detection_process_wanted():
+        return None
+    from stack.config import torch_threads
+    from testbed.replay_detection import DetectionReaderProcess
 
-        threads = torch_threads() or REPLAY_DETECTOR_THREADS.get(input_mode)
-        return DetectionReaderProcess(bag_path, topics, input_mode, kwargs, bag.camera_info, dope_every,
-                                      keyframes, threads=threads)
-    return DetectionAhead(lambda: open_bag(bag_path, topics, input_mode), detector, dope_every, keyframes=keyframes)
+    threads = torch_threads() or REPLAY_DETECTOR_THREADS.get(input_mode)
+    return DetectionReaderProcess(bag_path, topics, input_mode, kwargs, None, dope_every, keyframes, threads=threads)
 
 
 # torch threads of replay's detector process unless DOPESLAM_TORCH_THREADS says: one for colour input
@@ -236,7 +234,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     name for :func:`stack.interfaces.load_odometry` (default: KISS-ICP, with ``odometry_config``, a
     :class:`stack.lidar_slam.LidarOdometryConfig`, or the defaults). ``parallel``: the detector
     runs on a second reader ahead of the pipeline, in a child process or a thread
-    (:func:`detection_ahead`; else in the message loop).
+    (:func:`detection_process`; else in the message loop).
     ``loop_closure``: the loop closer rides along (key frames from the colour images, scans); the
     corrected trajectory then places the labels, and replaces the odometry's in the outputs (the
     odometry-only ATE is reported beside it when the bag has ground truth). ``odometry_only``: the
@@ -255,8 +253,16 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         raise OutputError(f"--out {out}: is, or lies inside, the input bag {bag_path}; choose another folder")
     kept = edited_objects(out) if write_outputs else []  # checked before any work starts
     wall0 = time.perf_counter()
-    bag = open_bag(bag_path, topics, input_mode, need_camera=not odometry_only)
-    ahead = None
+    # the detector's process first, where it runs in one: it builds its detector and opens the bag while
+    # this process opens it
+    ahead = detection_process(bag_path, topics, input_mode, detector, dope_every, keyframes) \
+        if parallel and not odometry_only else None
+    try:
+        bag = open_bag(bag_path, topics, input_mode, need_camera=not odometry_only)
+    except BaseException:
+        if ahead is not None:
+            ahead.close()
+        raise
     if odometry_only:
         parallel, loop_closure = False, False
     try:
@@ -289,7 +295,13 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         scans = 0
         read_s = 0.0
         if parallel:
-            ahead = detection_ahead(bag_path, bag, topics, input_mode, detector, dope_every, keyframes)
+            if ahead is None:  # the detector made just above runs in a process too
+                ahead = detection_process(bag_path, topics, input_mode, detector, dope_every, keyframes)
+            if ahead is not None:
+                ahead.camera(bag.camera_info)
+            else:
+                ahead = DetectionAhead(lambda: open_bag(bag_path, topics, input_mode), detector, dope_every,
+                                       keyframes=keyframes)
             stream = _merged(bag.frames(lidar=True, camera=False, odometry=True), ahead)
         else:
             stream = ((m.stamp, 0, m, None) for m in bag.frames(lidar=True, camera=not odometry_only, odometry=True))

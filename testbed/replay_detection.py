@@ -69,28 +69,37 @@ class DetectionReaderProcess(ChildOwner):
     """The twin of :class:`testbed.replay.DetectionAhead` in a child process.
 
     ``kwargs``: the DOPE detector's (:func:`testbed.run.detector_kwargs`); ``info``: the bag's camera
-    (the shared slots' size; an image of another size comes back inline). Iterating gives ``(frame,
+    (the shared slots' size; an image of another size comes back inline), or None and ``camera(info)``
+    before iterating (the child meanwhile builds its detector and opens the bag). Iterating gives ``(frame,
     detections or None when not detected, seconds)`` in image order. After the last image: ``gate``
     (``.held``: images the keyframe gate kept from the detector; None without a gate), ``reader``
     (the child reader's ``salvaged``, ``skipped_chunks`` and ``bad_message_summary()``) and
     ``read_seconds`` (the child's time reading and decoding)."""
 
-    def __init__(self, bag_path, topics, input_mode: str, kwargs: dict, info: CameraInfo,
+    def __init__(self, bag_path, topics, input_mode: str, kwargs: dict, info: CameraInfo | None,
                  dope_every: int = 1, keyframes=None, threads: int | None = 1, slots: int = 8):
-        H, W = info.height, info.width
-        self._shape = (H, W)
-        self._slot_bytes = H * W * 3 + H * W * 4
-        self._shm = shared_memory.SharedMemory(create=True, size=self._slot_bytes * int(slots))
+        self._shm, self._shape, self._slots = None, None, int(slots)
         self._proc, self._replies = start_child("testbed.replay_detection")
         ks = None if keyframes is None else {"min_motion_m": keyframes.min_motion_m,
                                              "min_turn_deg": keyframes.min_turn_deg,
                                              "max_interval_s": keyframes.max_interval_s}
         self._send({"bag": str(bag_path), "topics": _topics_json(topics), "input": input_mode,
-                    "kwargs": encode_value(kwargs), "threads": threads, "every": int(dope_every),
-                    "keyframes": ks, "shm": self._shm.name, "height": H, "width": W, "slots": int(slots)})
+                    "kwargs": encode_value(kwargs), "threads": threads, "every": int(dope_every), "keyframes": ks})
         self.gate = None
         self.reader = None
         self.read_seconds = 0.0
+        if info is not None:
+            self.camera(info)
+
+    def camera(self, info: CameraInfo | None) -> None:
+        """The slots for images of ``info``'s size (None: no slots, every image inline)."""
+        H, W = (info.height, info.width) if info is not None else (0, 0)
+        self._shape = (H, W)
+        self._slot_bytes = H * W * 3 + H * W * 4
+        slots = self._slots if self._slot_bytes else 0
+        if slots:
+            self._shm = shared_memory.SharedMemory(create=True, size=self._slot_bytes * slots)
+        self._send({"shm": None if self._shm is None else self._shm.name, "height": H, "width": W, "slots": slots})
 
     def _send(self, obj) -> bool:
         """False when the child has gone (what it left on the reply pipe says why)."""
@@ -106,6 +115,8 @@ class DetectionReaderProcess(ChildOwner):
         _raise_error(reply)
 
     def __iter__(self):
+        if self._shape is None:
+            raise RuntimeError("DetectionReaderProcess: camera(info) first")
         H, W = self._shape
         while True:
             line = self._replies.readline() if self._replies is not None else b""
@@ -163,22 +174,28 @@ def _child_main() -> None:
     reader = None
     try:
         setup = json.loads(requests.readline())
-        shm = shared_memory.SharedMemory(name=setup["shm"])
-        resource_tracker.unregister(shm._name, "shared_memory")  # the parent owns (and unlinks) it
-        H, W, slots = setup["height"], setup["width"], setup["slots"]
-        slot_bytes = H * W * 3 + H * W * 4
-        free = list(range(slots))
         detector = build_detector(decode_value(setup["kwargs"]), setup["threads"])
         gate = keyframe_gate(None if setup["keyframes"] is None else KeyframeSettings(**setup["keyframes"]))
         every = max(1, int(setup["every"]))
         reader = open_bag(setup["bag"], _topics_from_json(setup["topics"]), setup["input"])
+        line = requests.readline()  # the slots, once the parent has opened the bag too
+        if not line:
+            return  # the parent stopped first
+        slots_setup = json.loads(line)
+        H, W, slots = slots_setup["height"], slots_setup["width"], slots_setup["slots"]
+        shm = None
+        if slots:
+            shm = shared_memory.SharedMemory(name=slots_setup["shm"])
+            resource_tracker.unregister(shm._name, "shared_memory")  # the parent owns (and unlinks) it
+        slot_bytes = H * W * 3 + H * W * 4
+        free = list(range(slots))
         reply({"ready": True})
         read_s = 0.0
         for frame, dets, reading, seconds in detected_images(reader, detector, every, gate):
             read_s += reading
             info = frame.info
             rgb, depth = frame.rgb, frame.depth_m
-            fits = (rgb is None or (rgb.dtype == np.uint8 and rgb.shape == (H, W, 3))) and \
+            fits = slots > 0 and (rgb is None or (rgb.dtype == np.uint8 and rgb.shape == (H, W, 3))) and \
                 (depth is None or (depth.dtype == np.float32 and depth.shape == (H, W)))
             msg = {"stamp": frame.stamp, "width": info.width, "height": info.height,
                    "K": encode_value(np.asarray(info.K)), "frame_id": info.frame_id,

@@ -16,7 +16,7 @@ import pytest
 from stack.messages import CameraFrame
 from testbed.bags import BagReader, BagWriter
 from testbed.bags import topics as T
-from testbed.bags.errors import TooManyBadMessagesError
+from testbed.bags.errors import MissingTopicError, TooManyBadMessagesError
 from testbed.bags.salvage import zstd
 from testbed.record import write_image_truth
 from testbed.replay import BagTopics, replay_bag
@@ -263,6 +263,10 @@ def test_the_detection_process_counts_a_bad_image_as_the_thread_does(tmp_path, m
     assert reports["1"]["detector_process"] and not reports["0"]["detector_process"]
     assert reports["1"]["bad_messages"] == reports["0"]["bad_messages"]
     assert reports["1"]["detection"]["frames"] == reports["0"]["detection"]["frames"]
+    # the process starts before the bag is opened here: a bag this process cannot open stops it too
+    with pytest.raises(MissingTopicError, match="/no/such/topic"):
+        replay_bag(path, tmp_path / "missing", detector=make_detector("rgb", 1, True), odometry="wheel",
+                   write_outputs=False, topics=BagTopics(rgb="/no/such/topic"))
 
 
 def test_the_detection_process_sends_other_sizes_inline_and_stops_when_closed(tmp_path):
@@ -289,6 +293,10 @@ def test_the_detection_process_sends_other_sizes_inline_and_stops_when_closed(tm
     detector = build_detector(kwargs, 1)
     assert [len(d) for _, d, _ in got[::2]] == [len(detector.detect(f)) for f, _, _ in got[::2]]
     assert ahead.gate is None and ahead.reader.bad_message_summary() == {}
+    ahead = DetectionReaderProcess(path, BagTopics(), "rgb", kwargs, None)  # the camera told later: none here
+    ahead.camera(None)
+    assert [f.rgb.tobytes() for f, _, _ in ahead] == [f.rgb.tobytes() for f in frames]
+    ahead.close()
     with BagReader(path) as bag:
         info = bag.camera_info
     ahead = DetectionReaderProcess(path, BagTopics(), "rgb", kwargs, info, slots=2)
