@@ -74,6 +74,19 @@ def decode_detection(d: dict) -> Detection:
     return Detection(**{f: decode_value(d[f]) for f in _FIELDS})
 
 
+# --- the shared image slots -------------------------------------------------------------------------
+
+def slot_bytes(H: int, W: int) -> int:
+    """Bytes of one image slot: a colour image (uint8, H x W x 3), then a depth image (float32, H x W)."""
+    return H * W * 3 + H * W * 4
+
+
+def slot_arrays(buf, slot: int, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+    """Views of slot ``slot`` of the shared buffer ``buf``: ``(colour, depth)``."""
+    base = slot * slot_bytes(H, W)
+    return (np.ndarray((H, W, 3), np.uint8, buf, base), np.ndarray((H, W), np.float32, buf, base + H * W * 3))
+
+
 # --- the parent's side ------------------------------------------------------------------------------
 
 def start_child(module: str):
@@ -115,9 +128,8 @@ class DetectionProcess(ChildOwner):
 
     def __init__(self, kwargs: dict, info: CameraInfo, threads: int | None = 1, slots: int = 4):
         H, W = info.height, info.width
-        self._slot_bytes = H * W * 3 + H * W * 4
         self._slots = int(slots)
-        self._shm = shared_memory.SharedMemory(create=True, size=self._slot_bytes * self._slots)
+        self._shm = shared_memory.SharedMemory(create=True, size=slot_bytes(H, W) * self._slots)
         self._shape = (H, W)
         self._proc, self._replies = start_child("testbed.detection_process")
         setup = {"kwargs": encode_value(kwargs), "threads": threads, "shm": self._shm.name,
@@ -159,9 +171,7 @@ class DetectionProcess(ChildOwner):
             raise ValueError(f"detector process: depth image {frame.depth_m.dtype} {frame.depth_m.shape}, "
                              f"expected float32 ({H}, {W})")
         slot = self._next % self._slots
-        base = slot * self._slot_bytes
-        rgb = np.ndarray((H, W, 3), np.uint8, self._shm.buf, base)
-        depth = np.ndarray((H, W), np.float32, self._shm.buf, base + H * W * 3)
+        rgb, depth = slot_arrays(self._shm.buf, slot, H, W)
         if frame.rgb is not None:
             rgb[...] = frame.rgb
         if frame.depth_m is not None:
@@ -210,8 +220,7 @@ def _child_main() -> None:
         setup = json.loads(sys.stdin.buffer.readline())
         shm = shared_memory.SharedMemory(name=setup["shm"])
         resource_tracker.unregister(shm._name, "shared_memory")  # the parent owns (and unlinks) it
-        H, W, slots = setup["height"], setup["width"], setup["slots"]
-        slot_bytes = H * W * 3 + H * W * 4
+        H, W = setup["height"], setup["width"]
         detector = build_detector(decode_value(setup["kwargs"]), setup["threads"])
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises
         reply({"error": f"{type(exc).__name__}: {exc}"})
@@ -220,9 +229,9 @@ def _child_main() -> None:
     for line in sys.stdin.buffer:
         try:
             job = json.loads(line)
-            base = job["slot"] * slot_bytes
-            rgb = np.ndarray((H, W, 3), np.uint8, shm.buf, base).copy() if job["rgb"] else None
-            depth = np.ndarray((H, W), np.float32, shm.buf, base + H * W * 3).copy() if job["depth"] else None
+            rgb, depth = slot_arrays(shm.buf, job["slot"], H, W)
+            rgb = rgb.copy() if job["rgb"] else None
+            depth = depth.copy() if job["depth"] else None
             frame = CameraFrame(job["stamp"], CameraInfo(W, H, decode_value(job["K"]), job["frame_id"]), rgb, depth,
                                 decode_value(job["T"]))
             t0 = time.perf_counter()

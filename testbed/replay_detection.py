@@ -21,7 +21,8 @@ import numpy as np
 
 from sim.child import ChildOwner
 from stack.messages import CameraFrame, CameraInfo
-from testbed.detection_process import decode_detection, decode_value, encode_detection, encode_value, start_child
+from testbed.detection_process import (decode_detection, decode_value, encode_detection, encode_value, slot_arrays,
+                                      slot_bytes, start_child)
 
 _TOPIC_FIELDS = ("lidar", "rgb", "depth", "camera_info", "base_frame", "max_bad_messages")
 _POSE_FIELDS = ("T_base_lidar", "T_base_camera")
@@ -49,9 +50,10 @@ def _error_json(exc: BaseException) -> dict:
     return {"error": f"{type(exc).__name__}: {exc}"}
 
 
-def _raise_error(reply: dict):
+def _raise_error(reply: dict, bag: str):
     """The child's error raised here: a bag error as the same class with the same text (so the
-    command prints the one line it would have printed), anything else as a RuntimeError."""
+    command prints the one line it would have printed), anything else as a RuntimeError naming
+    ``bag``."""
     from testbed.bags import errors
 
     name = reply.get("bag_error")
@@ -62,7 +64,7 @@ def _raise_error(reply: dict):
         exc = cls.__new__(cls)
         errors.BagError.__init__(exc, reply["path"], reply["message"])
         raise exc
-    raise RuntimeError(f"replay's detection process: {reply.get('error', 'exited')}")
+    raise RuntimeError(f"{bag}: replay's detection process: {reply.get('error', 'exited')}")
 
 
 class DetectionReaderProcess(ChildOwner):
@@ -79,11 +81,12 @@ class DetectionReaderProcess(ChildOwner):
     def __init__(self, bag_path, topics, input_mode: str, kwargs: dict, info: CameraInfo | None,
                  dope_every: int = 1, keyframes=None, threads: int | None = 1, slots: int = 8):
         self._shm, self._shape, self._slots = None, None, int(slots)
+        self._bag = str(bag_path)
         self._proc, self._replies = start_child("testbed.replay_detection")
         ks = None if keyframes is None else {"min_motion_m": keyframes.min_motion_m,
                                              "min_turn_deg": keyframes.min_turn_deg,
                                              "max_interval_s": keyframes.max_interval_s}
-        self._send({"bag": str(bag_path), "topics": _topics_json(topics), "input": input_mode,
+        self._send({"bag": self._bag, "topics": _topics_json(topics), "input": input_mode,
                     "kwargs": encode_value(kwargs), "threads": threads, "every": int(dope_every), "keyframes": ks})
         self.gate = None
         self.reader = None
@@ -95,10 +98,9 @@ class DetectionReaderProcess(ChildOwner):
         """The slots for images of ``info``'s size (None: no slots, every image inline)."""
         H, W = (info.height, info.width) if info is not None else (0, 0)
         self._shape = (H, W)
-        self._slot_bytes = H * W * 3 + H * W * 4
-        slots = self._slots if self._slot_bytes else 0
+        slots = self._slots if H * W else 0
         if slots:
-            self._shm = shared_memory.SharedMemory(create=True, size=self._slot_bytes * slots)
+            self._shm = shared_memory.SharedMemory(create=True, size=slot_bytes(H, W) * slots)
         self._send({"shm": None if self._shm is None else self._shm.name, "height": H, "width": W, "slots": slots})
 
     def _send(self, obj) -> bool:
@@ -112,7 +114,7 @@ class DetectionReaderProcess(ChildOwner):
 
     def _fail(self, reply: dict):
         self.close()
-        _raise_error(reply)
+        _raise_error(reply, self._bag)
 
     def __iter__(self):
         if self._shape is None:
@@ -140,9 +142,9 @@ class DetectionReaderProcess(ChildOwner):
             if slot is None:  # not the slots' size: sent inline
                 rgb, depth = decode_value(f["rgb"]), decode_value(f["depth"])
             else:
-                base = slot * self._slot_bytes
-                rgb = np.ndarray((H, W, 3), np.uint8, self._shm.buf, base).copy() if f["rgb"] else None
-                depth = np.ndarray((H, W), np.float32, self._shm.buf, base + H * W * 3).copy() if f["depth"] else None
+                rgb, depth = slot_arrays(self._shm.buf, slot, H, W)
+                rgb = rgb.copy() if f["rgb"] else None
+                depth = depth.copy() if f["depth"] else None
                 self._send({"free": slot})
             info = CameraInfo(int(f["width"]), int(f["height"]), decode_value(f["K"]), f["frame_id"])
             frame = CameraFrame(f["stamp"], info, rgb, depth, decode_value(f["T"]), decode_value(f["extra"]))
@@ -187,7 +189,6 @@ def _child_main() -> None:
         if slots:
             shm = shared_memory.SharedMemory(name=slots_setup["shm"])
             resource_tracker.unregister(shm._name, "shared_memory")  # the parent owns (and unlinks) it
-        slot_bytes = H * W * 3 + H * W * 4
         free = list(range(slots))
         reply({"ready": True})
         read_s = 0.0
@@ -209,11 +210,11 @@ def _child_main() -> None:
                         return  # the parent is gone
                     free.append(int(json.loads(line)["free"]))
                 slot = free.pop(0)
-                base = slot * slot_bytes
+                rgb_slot, depth_slot = slot_arrays(shm.buf, slot, H, W)
                 if rgb is not None:
-                    np.ndarray((H, W, 3), np.uint8, shm.buf, base)[...] = rgb
+                    rgb_slot[...] = rgb
                 if depth is not None:
-                    np.ndarray((H, W), np.float32, shm.buf, base + H * W * 3)[...] = depth
+                    depth_slot[...] = depth
                 msg.update(slot=slot, rgb=rgb is not None, depth=depth is not None)
             else:
                 msg.update(slot=None, rgb=encode_value(rgb), depth=encode_value(depth))

@@ -304,3 +304,20 @@ def test_the_detection_process_sends_other_sizes_inline_and_stops_when_closed(tm
     t0 = time.perf_counter()
     ahead.close()
     assert time.perf_counter() - t0 < 5 and first[0].rgb.shape == frames[0].rgb.shape
+
+
+def test_a_failure_in_the_detection_process_names_the_bag(tmp_path):
+    """An error in replay's detector process that is not the bag's comes back as one error that
+    names the bag and what the child said, and the child is gone."""
+    from stack.messages import CameraInfo
+    from testbed.replay_detection import DetectionReaderProcess
+    from testbed.run import detector_kwargs
+
+    path = tmp_path / "run"
+    _bag_with_image_truth(path)
+    kwargs = {**detector_kwargs("rgb", 1, True), "no_such_argument": 1}
+    ahead = DetectionReaderProcess(path, BagTopics(), "rgb", kwargs, CameraInfo(8, 6, np.eye(3)))
+    child = ahead._proc
+    with pytest.raises(RuntimeError, match=rf"^{path}: replay's detection process: TypeError: .*no_such_argument"):
+        list(ahead)
+    assert child.poll() is not None and ahead._proc is None
