@@ -87,6 +87,14 @@ def slot_arrays(buf, slot: int, H: int, W: int) -> tuple[np.ndarray, np.ndarray]
     return (np.ndarray((H, W, 3), np.uint8, buf, base), np.ndarray((H, W), np.float32, buf, base + H * W * 3))
 
 
+def frame_fits(frame: CameraFrame, H: int, W: int) -> bool:
+    """Whether ``frame``'s colour (uint8, H x W x 3) and depth (float32, H x W) images, each or None,
+    fit a slot."""
+    rgb, depth = frame.rgb, frame.depth_m
+    return (rgb is None or (rgb.dtype == np.uint8 and rgb.shape == (H, W, 3))) and \
+        (depth is None or (depth.dtype == np.float32 and depth.shape == (H, W)))
+
+
 # --- the parent's side ------------------------------------------------------------------------------
 
 def start_child(module: str):
@@ -159,6 +167,10 @@ class DetectionProcess(ChildOwner):
     def _fail(self, why: str):
         self.close()
         raise RuntimeError(f"detector process: {why}")
+
+    def fits(self, frame: CameraFrame) -> bool:
+        """Whether ``frame``'s images fit the slots (else ``submit`` raises ValueError)."""
+        return frame_fits(frame, *self._shape)
 
     def submit(self, frame: CameraFrame) -> _Pending:
         if self._next - self._read >= self._slots:

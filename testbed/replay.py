@@ -24,6 +24,7 @@ import logging
 import queue
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -33,6 +34,7 @@ import numpy as np
 
 from stack.errors import OutputError
 from stack.interfaces import Detector
+from stack.keyframes import keyframe_gate
 from stack.messages import CameraFrame, LidarScan
 from stack.metrics import write_tum
 from stack.pipeline import DopeSlam
@@ -91,23 +93,51 @@ class BagImageTruth:
 
 # --- the message stream ---------------------------------------------------------------------------
 
-def detected_images(reader: BagReader, detector, every: int, gate):
+def detected_images(reader: BagReader, detector, every: int, gate, helper=None):
     """Per image of ``reader``: ``(frame, detections or None when not detected, seconds reading it,
     seconds detecting)``. The detector runs on every ``every``-th image that ``gate`` (a
-    :class:`stack.keyframes.KeyframeGate`, fed the bag's wheel odometry; None: every image) passes."""
+    :class:`stack.keyframes.KeyframeGate`, fed the bag's wheel odometry; None: every image) passes.
+
+    ``helper``: a :class:`testbed.detection_process.DetectionProcess` with the same detector: it
+    detects an image while ``detector`` detects the next one (one image in it at a time); the images,
+    their order and their detections are those without it."""
     frames = reader.camera_frames() if gate is None else reader.frames(lidar=False, camera=True, odometry=True)
     t_last, i = time.perf_counter(), -1
+    held: deque = deque()  # [frame, detections or the helper's job, reading s, detecting s], in image order
+    in_helper, behind = None, 0  # the entry the helper detects; entries held after it
+
+    def collect():
+        nonlocal in_helper
+        in_helper[1], in_helper[3] = in_helper[1].result()
+        in_helper = None
+
     for frame in frames:
         if not isinstance(frame, CameraFrame):
             gate.on_wheel_odometry(frame)
             continue
         i += 1
         t0 = time.perf_counter()
-        run = i % every == 0 and (gate is None or gate.passes(frame))
-        dets = list(detector.detect(frame)) if run else None
-        t1 = time.perf_counter()
-        yield frame, dets, t0 - t_last, t1 - t0
+        entry = [frame, None, t0 - t_last, 0.0]
+        if i % every == 0 and (gate is None or gate.passes(frame)):
+            if helper is not None and in_helper is None and helper.fits(frame):
+                entry[1], in_helper, behind = helper.submit(frame), entry, 0
+            else:
+                entry[1] = list(detector.detect(frame))
+                entry[3] = time.perf_counter() - t0
+                if in_helper is not None:  # it detected the earlier image meanwhile
+                    collect()
+        held.append(entry)
+        if in_helper is not None:
+            behind += 1
+            if behind > 4:  # images the gate passes by: the helper's image has waited long enough
+                collect()
+        while held and held[0] is not in_helper:
+            yield tuple(held.popleft())
         t_last = time.perf_counter()
+    if in_helper is not None:
+        collect()
+    while held:
+        yield tuple(held.popleft())
 
 
 class DetectionAhead:
@@ -121,8 +151,6 @@ class DetectionAhead:
 
     def __init__(self, open_reader: Callable[[], BagReader], detector, dope_every: int = 1, maxsize: int = 16,
                  keyframes=None):
-        from stack.keyframes import keyframe_gate
-
         self._open, self._detector, self._every = open_reader, detector, dope_every
         self.gate = keyframe_gate(keyframes)
         self._queue: queue.Queue = queue.Queue(maxsize)
@@ -174,9 +202,13 @@ def detection_process(bag_path, topics: BagTopics, input_mode: str, detector, do
     (:class:`testbed.replay_detection.DetectionReaderProcess`; its ``camera(info)`` still to be
     called) for a DOPE detector that :func:`testbed.run.make_detector` made, unless
     ``DOPESLAM_DETECTOR_PROCESS=0``; else None, and a thread (:class:`DetectionAhead`) runs it. The
-    same images, detections and counts either way."""
+    same images, detections and counts either way.
+
+    Where the detector runs on every image (no keyframe gate, ``dope_every`` 1) it is the longest
+    path, and a second process detects every other image (``DOPESLAM_DETECTOR_PROCESS`` ``1`` or
+    ``2`` says how many; docs/speed.md)."""
     from testbed.run import made_from
-    from testbed.settings import detection_process_wanted
+    from testbed.settings import detection_process_wanted, replay_detector_processes
 
     kwargs = made_from(detector)
     if kwargs is None or not detection_process_wanted():
@@ -184,13 +216,17 @@ def detection_process(bag_path, topics: BagTopics, input_mode: str, detector, do
     from stack.config import torch_threads
     from testbed.replay_detection import DetectionReaderProcess
 
-    threads = torch_threads() or REPLAY_DETECTOR_THREADS.get(input_mode)
-    return DetectionReaderProcess(bag_path, topics, input_mode, kwargs, None, dope_every, keyframes, threads=threads)
+    processes = replay_detector_processes()
+    if processes is None:
+        processes = 2 if dope_every <= 1 and keyframe_gate(keyframes) is None else 1
+    threads = torch_threads() or (1 if processes == 2 else REPLAY_DETECTOR_THREADS.get(input_mode))
+    return DetectionReaderProcess(bag_path, topics, input_mode, kwargs, None, dope_every, keyframes, threads=threads,
+                                  helper=processes == 2)
 
 
-# torch threads of replay's detector process unless DOPESLAM_TORCH_THREADS says: one for colour input
-# (as fast as two on two cores, for less CPU); torch's own count for depth input, whose several windows
-# per image make the network the longest path (docs/speed.md)
+# torch threads of replay's one detector process unless DOPESLAM_TORCH_THREADS says: one for colour
+# input (as fast as two on two cores, for less CPU); torch's own count for depth input, whose several
+# windows per image make the network the longest path (docs/speed.md); two processes take one each
 REPLAY_DETECTOR_THREADS = {"rgb": 1, "depth": None}
 
 
@@ -364,6 +400,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                              "images": truth is not None},
             "bag_seconds": span, "wall_seconds": wall, "real_time_factor": span / wall if wall > 0 else None,
             "parallel_passes": parallel, "detector_process": ahead is not None and not isinstance(ahead, DetectionAhead),
+            "detector_processes": 0 if ahead is None or isinstance(ahead, DetectionAhead) else 1 + ahead.helper,
             "detector": "none" if detector is None else detector_name(detector),
             "network_precision": getattr(detector, "precision", None),
             "odometry_class": detector_name(odom), "odometry_only": odometry_only,

@@ -21,7 +21,8 @@ import numpy as np
 
 from sim.child import ChildOwner
 from stack.messages import CameraFrame, CameraInfo
-from testbed.detection_process import (decode_detection, decode_value, encode_detection, encode_value, slot_arrays,
+from testbed.detection_process import (decode_detection, decode_value, encode_detection, encode_value,
+                                      frame_fits, slot_arrays,
                                       slot_bytes, start_child)
 
 _TOPIC_FIELDS = ("lidar", "rgb", "depth", "camera_info", "base_frame", "max_bad_messages")
@@ -76,18 +77,22 @@ class DetectionReaderProcess(ChildOwner):
     detections or None when not detected, seconds)`` in image order. After the last image: ``gate``
     (``.held``: images the keyframe gate kept from the detector; None without a gate), ``reader``
     (the child reader's ``salvaged``, ``skipped_chunks`` and ``bad_message_summary()``) and
-    ``read_seconds`` (the child's time reading and decoding)."""
+    ``read_seconds`` (the child's time reading and decoding). ``helper``: the child starts a second
+    detector process (:class:`testbed.detection_process.DetectionProcess`) that detects every other
+    detected image while the child detects the next (:func:`testbed.replay.detected_images`)."""
 
     def __init__(self, bag_path, topics, input_mode: str, kwargs: dict, info: CameraInfo | None,
-                 dope_every: int = 1, keyframes=None, threads: int | None = 1, slots: int = 8):
+                 dope_every: int = 1, keyframes=None, threads: int | None = 1, slots: int = 8, helper: bool = False):
         self._shm, self._shape, self._slots = None, None, int(slots)
+        self.helper = bool(helper)
         self._bag = str(bag_path)
         self._proc, self._replies = start_child("testbed.replay_detection")
         ks = None if keyframes is None else {"min_motion_m": keyframes.min_motion_m,
                                              "min_turn_deg": keyframes.min_turn_deg,
                                              "max_interval_s": keyframes.max_interval_s}
         self._send({"bag": self._bag, "topics": _topics_json(topics), "input": input_mode,
-                    "kwargs": encode_value(kwargs), "threads": threads, "every": int(dope_every), "keyframes": ks})
+                    "kwargs": encode_value(kwargs), "threads": threads, "every": int(dope_every), "keyframes": ks,
+                    "helper": self.helper})
         self.gate = None
         self.reader = None
         self.read_seconds = 0.0
@@ -163,7 +168,7 @@ def _child_main() -> None:
     from multiprocessing import resource_tracker
 
     from stack.keyframes import KeyframeSettings, keyframe_gate
-    from testbed.detection_process import build_detector
+    from testbed.detection_process import DetectionProcess, build_detector
     from testbed.replay import detected_images, open_bag
 
     out = os.fdopen(int(sys.argv[1]), "wb")
@@ -173,13 +178,16 @@ def _child_main() -> None:
         out.write(json.dumps(obj).encode() + b"\n")
         out.flush()
 
-    reader = None
+    reader = helper = None
     try:
         setup = json.loads(requests.readline())
-        detector = build_detector(decode_value(setup["kwargs"]), setup["threads"])
+        kwargs = decode_value(setup["kwargs"])
+        reader = open_bag(setup["bag"], _topics_from_json(setup["topics"]), setup["input"])
+        if setup.get("helper") and reader.camera_info is not None:  # started first: it builds its network meanwhile
+            helper = DetectionProcess(kwargs, reader.camera_info, setup["threads"])
+        detector = build_detector(kwargs, setup["threads"])
         gate = keyframe_gate(None if setup["keyframes"] is None else KeyframeSettings(**setup["keyframes"]))
         every = max(1, int(setup["every"]))
-        reader = open_bag(setup["bag"], _topics_from_json(setup["topics"]), setup["input"])
         line = requests.readline()  # the slots, once the parent has opened the bag too
         if not line:
             return  # the parent stopped first
@@ -192,12 +200,11 @@ def _child_main() -> None:
         free = list(range(slots))
         reply({"ready": True})
         read_s = 0.0
-        for frame, dets, reading, seconds in detected_images(reader, detector, every, gate):
+        for frame, dets, reading, seconds in detected_images(reader, detector, every, gate, helper):
             read_s += reading
             info = frame.info
             rgb, depth = frame.rgb, frame.depth_m
-            fits = slots > 0 and (rgb is None or (rgb.dtype == np.uint8 and rgb.shape == (H, W, 3))) and \
-                (depth is None or (depth.dtype == np.float32 and depth.shape == (H, W)))
+            fits = slots > 0 and frame_fits(frame, H, W)
             msg = {"stamp": frame.stamp, "width": info.width, "height": info.height,
                    "K": encode_value(np.asarray(info.K)), "frame_id": info.frame_id,
                    "T": encode_value(frame.T_world_camera), "extra": encode_value(frame.extra),
@@ -232,5 +239,7 @@ def _child_main() -> None:
         except (BrokenPipeError, OSError):
             pass
     finally:
+        if helper is not None:
+            helper.close()
         if reader is not None:
             reader.close()

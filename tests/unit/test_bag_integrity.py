@@ -253,16 +253,17 @@ def test_the_detection_process_counts_a_bad_image_as_the_thread_does(tmp_path, m
     path = tmp_path / "run"
     _bag_with_image_truth(path, bad_image=10)
     reports = {}
-    for mode in ("1", "0"):
+    for mode in ("2", "1", "0"):
         monkeypatch.setenv("DOPESLAM_DETECTOR_PROCESS", mode)
         reports[mode] = replay_bag(path, tmp_path / f"out{mode}", detector=make_detector("rgb", 1, True),
                                    odometry="wheel", write_outputs=False)
         with pytest.raises(TooManyBadMessagesError, match="1 bad messages on /camera/color/image_raw"):
             replay_bag(path, tmp_path / f"stop{mode}", detector=make_detector("rgb", 1, True), odometry="wheel",
                        write_outputs=False, topics=BagTopics(max_bad_messages=0))
-    assert reports["1"]["detector_process"] and not reports["0"]["detector_process"]
-    assert reports["1"]["bad_messages"] == reports["0"]["bad_messages"]
-    assert reports["1"]["detection"]["frames"] == reports["0"]["detection"]["frames"]
+    assert [reports[m]["detector_processes"] for m in ("2", "1", "0")] == [2, 1, 0]
+    assert reports["2"]["bad_messages"] == reports["1"]["bad_messages"] == reports["0"]["bad_messages"]
+    assert reports["2"]["detection"]["frames"] == reports["1"]["detection"]["frames"] == \
+        reports["0"]["detection"]["frames"]
     # the process starts before the bag is opened here: a bag this process cannot open stops it too
     with pytest.raises(MissingTopicError, match="/no/such/topic"):
         replay_bag(path, tmp_path / "missing", detector=make_detector("rgb", 1, True), odometry="wheel",

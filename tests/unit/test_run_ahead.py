@@ -78,3 +78,11 @@ def test_detection_process_setting(value, expected):
     from testbed.settings import detection_process_wanted
 
     assert detection_process_wanted({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) is expected
+
+
+@pytest.mark.parametrize("value, expected", [(None, None), ("", None), ("1", 1), (" 2 ", 2), ("0", None),
+                                             ("3", None), ("yes", None)])
+def test_replay_detector_processes_setting(value, expected):
+    from testbed.settings import replay_detector_processes
+
+    assert replay_detector_processes({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) == expected

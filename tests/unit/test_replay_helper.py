@@ -1,0 +1,116 @@
+"""Replay's image loop with a second detector process beside it (``detected_images(..., helper)``): the
+images come out in their order with the detections the one detector would give, the helper detects
+one image at a time while this process detects the next, and an image in the helper does not hold
+back the images the gate passes by for long. The helper here is a stand-in (its jobs finish when
+asked), so the test is about the loop's order, not about processes."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from stack.keyframes import KeyframeGate, KeyframeSettings
+from stack.messages import CameraFrame, CameraInfo, WheelOdometry
+from testbed.replay import detected_images
+
+INFO = CameraInfo(4, 3, np.eye(3))
+
+
+def frame(k: int) -> CameraFrame:
+    return CameraFrame(0.1 * k, INFO, np.full((3, 4, 3), k, np.uint8), np.full((3, 4), k, np.float32))
+
+
+class Reader:
+    """Images 0..n-1 at 10 Hz; with ``odometry`` each follows a wheel odometry message (standing
+    still for ``stand`` images, then moving 5 cm per image)."""
+
+    def __init__(self, n: int, stand: int = 0):
+        self.n, self.stand = n, stand
+        self.read = 0  # images read so far
+
+    def camera_frames(self):
+        return (frame(k) for k in range(self.n))
+
+    def frames(self, lidar: bool, camera: bool, odometry: bool):
+        for k in range(self.n):
+            T = np.eye(4)
+            T[0, 3] = 0.05 * max(0, k - self.stand)
+            yield WheelOdometry(0.1 * k - 0.01, T, 0.0, 0.0)
+            self.read += 1
+            yield frame(k)
+
+
+class Detector:
+    def __init__(self):
+        self.seen = []
+
+    def detect(self, f):
+        self.seen.append(int(f.rgb[0, 0, 0]))
+        return [("det", int(f.rgb[0, 0, 0]))]
+
+
+class Helper(Detector):
+    """Jobs finish when ``result()`` is asked; records how many were in it at once."""
+
+    def __init__(self):
+        super().__init__()
+        self.in_flight, self.most = 0, 0
+
+    def fits(self, f):
+        return f.rgb.shape == (3, 4, 3)
+
+    def submit(self, f):
+        self.in_flight += 1
+        self.most = max(self.most, self.in_flight)
+
+        def result():
+            self.in_flight -= 1
+            return self.detect(f), 0.5
+
+        return SimpleNamespace(result=result)
+
+
+def run(reader, every=1, gate=None, helper=None):
+    return [(int(f.rgb[0, 0, 0]), dets, seconds > 0 if dets is not None else None)
+            for f, dets, _, seconds in detected_images(reader, Detector(), every, gate, helper)]
+
+
+def test_with_a_helper_the_images_and_detections_are_those_without():
+    for every in (1, 2, 3):
+        alone = run(Reader(11), every)
+        helper = Helper()
+        shared = run(Reader(11), every, helper=helper)
+        assert [(k, d) for k, d, _ in shared] == [(k, d) for k, d, _ in alone]
+        assert [k for k, _, _ in shared] == list(range(11))
+        assert helper.most == 1 and helper.in_flight == 0
+        detected = [k for k, d, _ in alone if d is not None]
+        assert helper.seen == detected[0::2]  # every other detected image, the first to the helper
+        assert all(s for _, d, s in shared if d is not None)  # each detected image has its seconds
+
+
+def test_an_image_in_the_helper_holds_back_a_few_images_at_most():
+    """Behind a gate that lets one image through and then holds the standing robot's next ones, the
+    helper's image comes back after at most five more images rather than at the next detection."""
+    settings = KeyframeSettings(min_motion_m=0.1, min_turn_deg=5.0, max_interval_s=100.0)
+    alone = run(Reader(20, stand=12), gate=KeyframeGate(settings))
+    reader, helper, collected = Reader(20, stand=12), Helper(), []
+
+    class Watching:
+        def fits(self, f):
+            return True
+
+        def submit(self, f):
+            job = helper.submit(f)
+
+            def result():
+                collected.append((int(f.rgb[0, 0, 0]), reader.read))
+                return job.result()
+
+            return SimpleNamespace(result=result)
+
+    got = [(int(f.rgb[0, 0, 0]), dets) for f, dets, _, _ in
+           detected_images(reader, Detector(), 1, KeyframeGate(settings), Watching())]
+    assert got == [(k, d) for k, d, _ in alone]
+    detected = [k for k, d in got if d is not None]
+    assert detected[0] == 0 and detected[1] > 6  # the gate holds the standing robot's images
+    assert collected[0] == (0, 5)  # image 0 came back once four more had been read, not at the next detection
