@@ -20,8 +20,8 @@ reads its two itself):
     DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode;
                             unset: on where testbed.run runs the detector ahead, else off)
     DOPESLAM_TORCH_THREADS  torch threads of the detector (read by stack.config.torch_threads;
-                            unset: 1 where testbed.run runs the detector ahead and in replay's
-                            detector process for colour input, else torch's)
+                            unset: 1 where testbed.run runs the detector ahead, and in replay's
+                            detector process for colour input or in each of two, else torch's)
 
 Configuration keys come from ``DOPESLAM_SECTION__KEY`` variables (a double underscore), see
 :mod:`stack.config`.
