@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 
 import gymnasium
-import numpy as np
 
 import testbed.envs  # noqa: F401
 from testbed.envs.policies import BASELINES, make_policy

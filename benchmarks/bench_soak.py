@@ -13,7 +13,6 @@ last quarter against the second.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import time

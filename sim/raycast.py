@@ -180,7 +180,6 @@ class BoxRayCaster:
 
     def _ring_slices(self, ox, oy, oz, dx, dy, dz) -> list[slice | None]:
         """Per box, the ring slice whose elevations can reach it (None: no ring can)."""
-        Rr = dx.shape[1]
         sin_el = dz / np.sqrt(dx * dx + dy * dy + dz * dz)
         s_lo, s_hi = sin_el.min(axis=0), sin_el.max(axis=0)  # (R,) over the columns
         om = np.array([ox.mean(), oy.mean()])

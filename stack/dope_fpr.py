@@ -58,7 +58,7 @@ from stack.dope.colour_names import ColourModel, colour_names
 from stack.dope.depth_refine import refine_translation
 from stack.dope.depth_window import preprocess_depth, sliding_windows, window_content
 from stack.dope.shape_check import shape_verdict
-from stack.dope.net import N_AFFINITY, N_BELIEF, STRIDE, DopeNet, load_weights
+from stack.dope.net import N_AFFINITY, N_BELIEF, STRIDE, load_weights
 from stack import metrics
 from stack.config import torch_threads
 from stack.dope.targets import to_input_px

@@ -37,13 +37,11 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
-from stack.errors import DopeSlamError
 from stack.messages import LidarScan, WheelOdometry
 from stack.pose_track import PoseTrack
 from stack.transforms import interpolate_trajectory, inv

@@ -442,7 +442,6 @@ def train(cfg: TrainConfig) -> dict:
     losses_since = []
 
     def checkpoint(final: bool = False):
-        nonlocal evals
         ev = evaluate_keypoints(model, val, val_idx, cfg, device) if len(val) else {}
         medians = {k: round(v["median_px"], 2) for k, v in ev.items()}
         evals.append({"step": step, "minutes": round((time.time() - t_start) / 60, 1), "median_px": medians,

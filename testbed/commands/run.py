@@ -211,7 +211,6 @@ def run(args) -> int:
 
 
 def score(args) -> int:
-    import json
     import sys
 
     import numpy as np

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from sim.episode import Episode
 from sim.objects import load_catalog, spawn_object
 from sim.scenario import Scenario
-from stack.transforms import inv, make_T
+from stack.transforms import inv
 
 RIG = {
     "name": "static_rig",

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import operator
-import re
 from dataclasses import asdict, dataclass
 
 from sim.scenario import EXPECT_COMPARISON as _COMPARISON  # one syntax, checked where scenarios load

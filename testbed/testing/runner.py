@@ -8,7 +8,7 @@ import os
 import time
 from pathlib import Path
 
-from testbed.testing.baseline import compare, load_baseline
+from testbed.testing.baseline import compare
 from testbed.testing.cells import run_cells
 from testbed.testing.junit import write_junit
 from testbed.testing.report_html import write_html

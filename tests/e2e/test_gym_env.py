@@ -6,7 +6,6 @@ DOPE is replaced by a noisy ground-truth double (tests/labelling_double.py) so t
 not depend on trained weights; the episodes are short drives in a small test scene.
 """
 import json
-import math
 from pathlib import Path
 
 import gymnasium

@@ -1,5 +1,4 @@
 """The DOPE network: output shapes per stage count, layer counts, weights round trip."""
-import numpy as np
 import pytest
 import torch
 
