@@ -61,6 +61,7 @@ from stack.dope.shape_check import shape_verdict
 from stack.dope.net import N_AFFINITY, N_BELIEF, STRIDE, load_weights
 from stack import metrics
 from stack.config import torch_threads
+from stack.errors import DopeSlamError
 from stack.dope.targets import to_input_px
 from stack.messages import CameraFrame, Detection
 
@@ -371,6 +372,10 @@ def calibrate_threshold(scores, correct, target_precision: float = 0.995, n_posi
     return best
 
 
+class ThresholdsError(DopeSlamError, ValueError):
+    """An FPR threshold file that is missing or is not one (its path and what was expected)."""
+
+
 @dataclass
 class FprThresholds:
     """Belief-sum thresholds per class and stage count ({cls: {stages: threshold}}), with overrides."""
@@ -440,16 +445,22 @@ class FprThresholds:
             with open(path) as f:
                 blob = json.load(f)
         except FileNotFoundError:
-            raise FileNotFoundError(f"{path}: FPR threshold file not found") from None
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from None
-        if "table" not in blob:
-            raise ValueError(f"{path}: expected a 'table' field ({{cls: {{stages: threshold}}}})")
+            raise ThresholdsError(f"{path}: FPR threshold file not found") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ThresholdsError(f"{path}: not valid JSON ({exc})") from None
+        except IsADirectoryError:
+            raise ThresholdsError(f"{path}: is a folder; expected an FPR threshold file (JSON)") from None
+        if not isinstance(blob, dict) or "table" not in blob:
+            raise ThresholdsError(f"{path}: expected a 'table' field ({{cls: {{stages: threshold}}}})")
 
         def dec(v):
             return -math.inf if v == "-inf" else (math.inf if v is None else float(v))
-        table = {c: {s: dec(v) for s, v in row.items()} for c, row in blob["table"].items()}
-        default = math.inf if blob.get("default") is None else float(blob["default"])
+        try:
+            table = {str(c): {s: dec(v) for s, v in row.items()} for c, row in blob["table"].items()}
+            default = math.inf if blob.get("default") is None else float(blob["default"])
+        except (AttributeError, TypeError, ValueError) as exc:
+            raise ThresholdsError(f"{path}: 'table' must map each class to {{stages: threshold or null}} "
+                                  f"and 'default' be a number ({exc})") from None
         return FprThresholds(table, default, blob.get("overrides", {}), blob.get("meta", {}))
 
 

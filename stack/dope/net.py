@@ -21,11 +21,13 @@ is a call argument (1..6): a 1-stage network is the same weights with the later 
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
 
+from stack.errors import DopeSlamError
 from stack.io import atomic_path
 
 N_BELIEF = 9  # 8 corners + centroid
@@ -170,15 +172,33 @@ def save_weights(path, model: DopeNet, half: bool = True, extra: dict | None = N
         torch.save(blob, tmp)
 
 
+class WeightsError(DopeSlamError, ValueError):
+    """A weights file that is missing or is not a DOPE network's (its path and what was expected)."""
+
+
 def load_weights(path, device: str | torch.device = "cpu") -> tuple[DopeNet, dict]:
-    """(model in eval mode, float32, on ``device``; the file's ``extra`` dict)."""
+    """(model in eval mode, float32, on ``device``; the file's ``extra`` dict). Raises
+    :class:`WeightsError` for a missing file or one that is not a DOPE network's weights (loaded as
+    tensors only: nothing in it runs)."""
+    expected = "a DOPE weights file (a dict with 'config' and 'state_dict', as dopeslam train writes)"
     try:
-        blob = torch.load(str(path), map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch's notes on a foreign file's pickle protocol: the error below says it
+            warnings.simplefilter("ignore", UserWarning)
+            blob = torch.load(str(path), map_location="cpu", weights_only=True)
     except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: DOPE weights file not found") from None
+        raise WeightsError(f"{path}: DOPE weights file not found") from None
+    except IsADirectoryError:
+        raise WeightsError(f"{path}: is a folder; expected {expected}") from None
+    except Exception as exc:  # noqa: BLE001 - torch's unpickler raises many kinds for foreign bytes
+        why = (str(exc).strip().splitlines() or [type(exc).__name__])[0].split(". ")[0][:120]
+        raise WeightsError(f"{path}: unreadable ({why}); expected {expected}") from None
     if not isinstance(blob, dict) or "config" not in blob or "state_dict" not in blob:
-        raise ValueError(f"{path}: expected a dict with 'config' and 'state_dict' (a DOPE weights file)")
-    model = DopeNet(DopeNetConfig.from_dict(blob["config"]))
-    model.load_state_dict({k: v.float() for k, v in blob["state_dict"].items()})
+        raise WeightsError(f"{path}: expected {expected}")
+    try:
+        model = DopeNet(DopeNetConfig.from_dict(blob["config"]))
+        model.load_state_dict({k: v.float() for k, v in blob["state_dict"].items()})
+    except (TypeError, ValueError, KeyError, RuntimeError, AttributeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise WeightsError(f"{path}: its 'config' and 'state_dict' do not make a DOPE network ({first[:200]})") from None
     model.eval().to(device)
     return model, dict(blob.get("extra", {}))

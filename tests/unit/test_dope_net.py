@@ -57,11 +57,33 @@ def test_half_precision_weights_round_trip(net, tmp_path):
     assert all(v.dtype == torch.float16 for v in blob["state_dict"].values() if v.is_floating_point())
 
 
-def test_loading_a_non_weights_file_names_the_file(tmp_path):
+@pytest.mark.parametrize("kind", ["other dict", "junk bytes", "code", "bad config", "wrong tensors", "folder",
+                                  "missing"])
+def test_loading_a_non_weights_file_names_the_file(tmp_path, kind):
+    """Whatever the file holds, one user error (a DopeSlamError) naming it; nothing in it runs."""
+    import pickle
+
+    from stack.errors import DopeSlamError
+    from stack.dope.net import WeightsError
+
     bad = tmp_path / "bad.pt"
-    torch.save({"x": torch.zeros(1)}, bad)
-    with pytest.raises(ValueError, match="bad.pt"):
+    good = DopeNet(DopeNetConfig(width=0.125, stages=2))
+    if kind == "other dict":
+        torch.save({"x": torch.zeros(1)}, bad)
+    elif kind == "junk bytes":
+        bad.write_bytes(b"\x00not a network" * 50)
+    elif kind == "code":  # a pickle that would call a function: refused, never run
+        bad.write_bytes(pickle.dumps(tmp_path.joinpath))
+    elif kind == "bad config":
+        torch.save({"config": {"no such field": 1}, "state_dict": {}}, bad)
+    elif kind == "wrong tensors":
+        torch.save({"config": {"width": 0.125, "stages": 2},
+                    "state_dict": {k: torch.zeros(1) for k in good.state_dict()}}, bad)
+    elif kind == "folder":
+        bad.mkdir()
+    with pytest.raises(WeightsError, match="bad.pt") as info:
         load_weights(bad)
+    assert isinstance(info.value, DopeSlamError) and "\n" not in str(info.value)
 
 
 def test_expand_stages_repeats_the_last_stage():

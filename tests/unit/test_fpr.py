@@ -77,11 +77,18 @@ def test_thresholds_per_class_and_stage_with_manual_override_and_file_round_trip
     assert back.get("E", 6) == 8.0 and back.get("E", 1) == th.get("E", 1) and back.get("Mustard", 2) == math.inf
 
 
-def test_bad_threshold_file_names_the_file(tmp_path):
+@pytest.mark.parametrize("text", ["{}", "[1, 2]", "not json", '{"table": {"Mustard": 3}}',
+                                  '{"table": {"Mustard": {"6": "high"}}}', '{"table": {}, "default": "x"}', None])
+def test_bad_threshold_file_names_the_file(tmp_path, text):
+    from stack.dope_fpr import ThresholdsError
+    from stack.errors import DopeSlamError
+
     p = tmp_path / "x.json"
-    p.write_text("{}")
-    with pytest.raises(ValueError, match="x.json"):
+    if text is not None:  # None: no file
+        p.write_text(text)
+    with pytest.raises(ThresholdsError, match="x.json") as info:
         FprThresholds.load(p)
+    assert isinstance(info.value, DopeSlamError)
 
 
 def test_calibration_fallback_takes_the_most_precise_cut_when_the_target_is_out_of_reach():
