@@ -42,6 +42,7 @@ from stack.transforms import transform_points
 from testbed.bags import BagReader, MissingTopicError
 from testbed.bags import topics as T
 from testbed.record import RESULTS_BAG_NAME, image_truth_from_json, write_results_bag
+from testbed.replay_detection import BuiltDetector
 from testbed.run import DetectionLog, _map_png, candidate_rows, score_detections, score_labels, score_trajectory
 from testbed.scoring import summary_line
 from testbed.io import check_new_output, edited_objects, output_dir, write_json
@@ -197,20 +198,20 @@ class DetectionAhead:
         self._thread.join(timeout=30)
 
 
-def detection_process(bag_path, topics: BagTopics, input_mode: str, detector, dope_every: int, keyframes):
+def detection_process(bag_path, topics: BagTopics, input_mode: str, kwargs: dict | None, dope_every: int,
+                      keyframes):
     """Replay's detector side, ahead of the pipeline, in a child process of its own
     (:class:`testbed.replay_detection.DetectionReaderProcess`; its ``camera(info)`` still to be
-    called) for a DOPE detector that :func:`testbed.run.make_detector` made, unless
-    ``DOPESLAM_DETECTOR_PROCESS=0``; else None, and a thread (:class:`DetectionAhead`) runs it. The
-    same images, detections and counts either way.
+    called) for the DOPE detector of ``kwargs`` (:func:`testbed.run.detector_kwargs`; the child builds
+    it), unless ``kwargs`` is None or ``DOPESLAM_DETECTOR_PROCESS=0``; else None, and a thread
+    (:class:`DetectionAhead`) runs a detector built here. The same images, detections and counts
+    either way.
 
     Where the detector runs on every image (no keyframe gate, ``dope_every`` 1) it is the longest
     path, and a second process detects every other image (``DOPESLAM_DETECTOR_PROCESS`` ``1`` or
     ``2`` says how many; docs/speed.md)."""
-    from testbed.run import made_from
     from testbed.settings import detection_process_wanted, replay_detector_processes
 
-    kwargs = made_from(detector)
     if kwargs is None or not detection_process_wanted():
         return None
     from stack.config import torch_threads
@@ -237,12 +238,24 @@ def _merged(sensors, images):
                        ((f.stamp, 1, f, (dets, s)) for f, dets, s in images), key=lambda x: (x[0], x[1]))
 
 
-def open_bag(path, topics: BagTopics, input_mode: str, need_camera: bool = True) -> BagReader:
+def _with_true_poses(images, bag: BagReader):
+    """The detector process's frames with their true camera pose from ``bag``'s ground truth, as the
+    pipeline's reader gives its own (the process's reader leaves the ground truth unread)."""
+    for frame, dets, seconds in images:
+        if frame.T_world_camera is None:
+            frame.T_world_camera = bag.true_camera_pose(frame.stamp)
+        yield frame, dets, seconds
+
+
+def open_bag(path, topics: BagTopics, input_mode: str, need_camera: bool = True,
+             ground_truth: bool = True) -> BagReader:
+    """The bag on a reader of its own; ``ground_truth`` False: a reader for the detector side only,
+    which leaves the ground truth (scored by the pipeline's reader) unread."""
     extra = {"base_frame": topics.base_frame} if topics.base_frame else {}
     bag = BagReader(path, lidar_topic=topics.lidar, rgb_topic=topics.rgb, depth_topic=topics.depth,
                     camera_info_topic=topics.camera_info, require_camera=need_camera,
                     T_base_lidar=topics.T_base_lidar, T_base_camera=topics.T_base_camera,
-                    max_bad_messages=topics.max_bad_messages, **extra).open()
+                    max_bad_messages=topics.max_bad_messages, ground_truth=ground_truth, **extra).open()
     if need_camera:
         have = bag.rgb_topic if input_mode == "rgb" else bag.depth_topic
         if have is None:
@@ -262,11 +275,13 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
                dope_every: int = 1, parallel: bool = True, write_outputs: bool = True,
                results_bag=None, keep_detections: bool = False, loop_closure: bool = False,
                vocabulary=None, odometry=None, odometry_only: bool = False, odometry_config=None,
-               keyframes=None) -> dict:
+               keyframes=None, detector_config=None) -> dict:
     """Run the stack's pipeline over a bag; returns the report (written to OUT/report.json).
 
     ``detector``: any :class:`stack.interfaces.Detector` (default: DOPE + FPR for ``input_mode``,
-    ``stages``, ``fpr``, ``weights``). ``odometry``: an :class:`stack.interfaces.Odometry`, or a
+    ``stages``, ``fpr``, ``weights``, or as ``detector_config``, a :class:`stack.config.DetectorConfig`,
+    says; where it runs in a child process, only the child builds it: the report's ``_detector``
+    names what ran, for the outputs' provenance). ``odometry``: an :class:`stack.interfaces.Odometry`, or a
     name for :func:`stack.interfaces.load_odometry` (default: KISS-ICP, with ``odometry_config``, a
     :class:`stack.lidar_slam.LidarOdometryConfig`, or the defaults). ``parallel``: the detector
     runs on a second reader ahead of the pipeline, in a child process or a thread
@@ -279,7 +294,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     :class:`stack.keyframes.KeyframeSettings`: the detector runs only on images the robot moved or
     turned enough for (by the bag's wheel odometry), or after a while."""
     from sim.objects import load_catalog
-    from testbed.run import detector_name, make_detector, make_odometry
+    from testbed.run import detector_kwargs, detector_name, made_from, make_detector, make_odometry
 
     topics = topics or BagTopics()
     out = Path(out_dir)
@@ -290,8 +305,10 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     kept = edited_objects(out) if write_outputs else []  # checked before any work starts
     wall0 = time.perf_counter()
     # the detector's process first, where it runs in one: it builds its detector and opens the bag while
-    # this process opens it
-    ahead = detection_process(bag_path, topics, input_mode, detector, dope_every, keyframes) \
+    # this process opens it (and builds none)
+    dope = made_from(detector) if detector is not None else \
+        detector_kwargs(input_mode, stages, fpr, weights, detector_config)
+    ahead = detection_process(bag_path, topics, input_mode, dope, dope_every, keyframes) \
         if parallel and not odometry_only else None
     try:
         bag = open_bag(bag_path, topics, input_mode, need_camera=not odometry_only)
@@ -305,8 +322,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         log.info("%s", bag.describe())
         if odometry_only:
             detector = None
-        else:
-            detector = detector or make_detector(input_mode, stages, fpr, weights)
+        elif detector is None and ahead is None:  # the DOPE detector runs in this process
+            detector = make_detector(input_mode, stages, fpr, weights, config=detector_config)
         if detector is not None and not isinstance(detector, Detector):  # in parallel the pipeline does not see it
             raise TypeError(f"detector {type(detector).__name__} has no detect(frame) method")
         dims = {c: s.dims for c, s in load_catalog().items()}
@@ -331,14 +348,14 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         scans = 0
         read_s = 0.0
         if parallel:
-            if ahead is None:  # the detector made just above runs in a process too
-                ahead = detection_process(bag_path, topics, input_mode, detector, dope_every, keyframes)
             if ahead is not None:
                 ahead.camera(bag.camera_info)
+                images = _with_true_poses(ahead, bag)
             else:
-                ahead = DetectionAhead(lambda: open_bag(bag_path, topics, input_mode), detector, dope_every,
-                                       keyframes=keyframes)
-            stream = _merged(bag.frames(lidar=True, camera=False, odometry=True), ahead)
+                ahead = DetectionAhead(lambda: open_bag(bag_path, topics, input_mode), detector,
+                                       dope_every, keyframes=keyframes)
+                images = ahead
+            stream = _merged(bag.frames(lidar=True, camera=False, odometry=True), images)
         else:
             stream = ((m.stamp, 0, m, None) for m in bag.frames(lidar=True, camera=not odometry_only, odometry=True))
         from testbed.progress import EpisodeWatch  # progress bar (scans) and live views (--view)
@@ -390,6 +407,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
         gt = bag.groundtruth
         span = _bag_span(bag, stamps)
         meta = bag.metadata
+        ran = detector if detector is not None else getattr(ahead, "built", None)  # built here, or in the process
         report: dict = {
             "bag": str(bag.path), "source": meta.get("source", "rosbag"),
             "scenario": meta.get("scenario", bag.path.stem), "seed": meta.get("seed"), "light": meta.get("light"),
@@ -401,8 +419,8 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             "bag_seconds": span, "wall_seconds": wall, "real_time_factor": span / wall if wall > 0 else None,
             "parallel_passes": parallel, "detector_process": ahead is not None and not isinstance(ahead, DetectionAhead),
             "detector_processes": 0 if ahead is None or isinstance(ahead, DetectionAhead) else 1 + ahead.helper,
-            "detector": "none" if detector is None else detector_name(detector),
-            "network_precision": getattr(detector, "precision", None),
+            "detector": "none" if ran is None else ran.name if isinstance(ran, BuiltDetector) else detector_name(ran),
+            "network_precision": getattr(ran, "precision", None),
             "odometry_class": detector_name(odom), "odometry_only": odometry_only,
             "time_split_s": {"odometry": pipe.timing["odometry"], "odometry_reading": read_s,
                              "dope": dlog.seconds, "image_reading": ahead.read_seconds if ahead else 0.0,
@@ -494,6 +512,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             report["_observations"] = result.observations
             report["_trajectory"] = (stamps, poses)
             report["_T_world_map"] = T_world_map
+        report["_detector"] = ran
         return report
     finally:
         if ahead is not None:

@@ -14,7 +14,9 @@ from __future__ import annotations
 import json
 import os
 import sys
+from dataclasses import dataclass
 from multiprocessing import shared_memory
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -43,20 +45,56 @@ def _topics_from_json(d: dict):
                      **{f: None if d[f] is None else np.asarray(d[f], dtype=float) for f in _POSE_FIELDS})
 
 
+@dataclass(frozen=True)
+class BuiltDetector:
+    """The detector the child process built and ran, as the report and the outputs' provenance name
+    it: the parent builds no network of its own."""
+
+    name: str  # module:Class
+    weights_path: Path | None
+    thresholds_path: Path | None
+    precision: str | None
+
+    @staticmethod
+    def json_of(detector) -> dict:
+        """What the parent needs to know of ``detector``, as JSON."""
+        from testbed.run import detector_name
+
+        def path(p):
+            return None if p is None else str(p)
+
+        return {"name": detector_name(detector), "weights_path": path(getattr(detector, "weights_path", None)),
+                "thresholds_path": path(getattr(detector, "thresholds_path", None)),
+                "precision": getattr(detector, "precision", None)}
+
+    @staticmethod
+    def from_json(d: dict) -> "BuiltDetector":
+        def path(p):
+            return None if p is None else Path(p)
+
+        return BuiltDetector(str(d["name"]), path(d["weights_path"]), path(d["thresholds_path"]), d["precision"])
+
+
 def _error_json(exc: BaseException) -> dict:
+    from stack.errors import DopeSlamError
     from testbed.bags.errors import BagError
 
     if isinstance(exc, BagError):
         return {"bag_error": type(exc).__name__, "path": str(exc.path), "message": exc.message}
+    if isinstance(exc, DopeSlamError):  # what the user gave (e.g. a weights file) is wrong
+        return {"user_error": str(exc)}
     return {"error": f"{type(exc).__name__}: {exc}"}
 
 
 def _raise_error(reply: dict, bag: str):
-    """The child's error raised here: a bag error as the same class with the same text (so the
-    command prints the one line it would have printed), anything else as a RuntimeError naming
-    ``bag``."""
+    """The child's error raised here: a bag error as the same class with the same text, another error
+    in what the user gave as a DopeSlamError (so the command prints the one line it would have
+    printed), anything else as a RuntimeError naming ``bag``."""
+    from stack.errors import DopeSlamError
     from testbed.bags import errors
 
+    if "user_error" in reply:
+        raise DopeSlamError(reply["user_error"])
     name = reply.get("bag_error")
     if name is not None:
         cls = getattr(errors, name, None)
@@ -79,7 +117,8 @@ class DetectionReaderProcess(ChildOwner):
     (the child reader's ``salvaged``, ``skipped_chunks`` and ``bad_message_summary()``) and
     ``read_seconds`` (the child's time reading and decoding). ``helper``: the child starts a second
     detector process (:class:`testbed.detection_process.DetectionProcess`) that detects every other
-    detected image while the child detects the next (:func:`testbed.replay.detected_images`)."""
+    detected image while the child detects the next (:func:`testbed.replay.detected_images`). Once
+    the child has replied ready (at the first image): ``built``, the :class:`BuiltDetector` it runs."""
 
     def __init__(self, bag_path, topics, input_mode: str, kwargs: dict, info: CameraInfo | None,
                  dope_every: int = 1, keyframes=None, threads: int | None = 1, slots: int = 8, helper: bool = False):
@@ -95,6 +134,7 @@ class DetectionReaderProcess(ChildOwner):
                     "helper": self.helper})
         self.gate = None
         self.reader = None
+        self.built: BuiltDetector | None = None
         self.read_seconds = 0.0
         if info is not None:
             self.camera(info)
@@ -130,7 +170,7 @@ class DetectionReaderProcess(ChildOwner):
             if not line:
                 self._fail({"error": "exited"})
             reply = json.loads(line)
-            if "error" in reply or "bag_error" in reply:
+            if {"error", "bag_error", "user_error"} & reply.keys():
                 self._fail(reply)
             if "end" in reply:
                 end = reply["end"]
@@ -141,8 +181,9 @@ class DetectionReaderProcess(ChildOwner):
                                               bad_message_summary=lambda bad=bad: bad)
                 return
             f = reply.get("frame")
-            if f is None:
-                continue  # "ready"
+            if f is None:  # "ready", with the detector it built
+                self.built = BuiltDetector.from_json(reply["detector"])
+                continue
             slot = f["slot"]
             if slot is None:  # not the slots' size: sent inline
                 rgb, depth = decode_value(f["rgb"]), decode_value(f["depth"])
@@ -182,7 +223,7 @@ def _child_main() -> None:
     try:
         setup = json.loads(requests.readline())
         kwargs = decode_value(setup["kwargs"])
-        reader = open_bag(setup["bag"], _topics_from_json(setup["topics"]), setup["input"])
+        reader = open_bag(setup["bag"], _topics_from_json(setup["topics"]), setup["input"], ground_truth=False)
         if setup.get("helper") and reader.camera_info is not None:  # started first: it builds its network meanwhile
             helper = DetectionProcess(kwargs, reader.camera_info, setup["threads"])
         detector = build_detector(kwargs, setup["threads"])
@@ -198,7 +239,7 @@ def _child_main() -> None:
             shm = shared_memory.SharedMemory(name=slots_setup["shm"])
             resource_tracker.unregister(shm._name, "shared_memory")  # the parent owns (and unlinks) it
         free = list(range(slots))
-        reply({"ready": True})
+        reply({"ready": True, "detector": BuiltDetector.json_of(detector)})
         read_s = 0.0
         for frame, dets, reading, seconds in detected_images(reader, detector, every, gate, helper):
             read_s += reading

@@ -303,6 +303,8 @@ class BagReader:
     colour image and the depth image paired with it. ``salvage``: ``auto`` walks
     a ROS 1 or MCAP file that cannot be opened normally and reads its intact
     chunks, ``never`` raises instead, ``always`` walks without trying the index.
+    ``ground_truth``: False leaves the ground-truth trajectory unread (``groundtruth`` stays None), for
+    a reader that only needs the sensors: reading it passes over every chunk of a simulator's bag.
     """
 
     def __init__(self, path: Path | str, lidar_topic: str | None = None, rgb_topic: str | None = None,
@@ -310,8 +312,9 @@ class BagReader:
                  odom_topic: str | None = None, *, base_frame: str = T.BASE,
                  T_base_lidar: np.ndarray | None = None, T_base_camera: np.ndarray | None = None,
                  require_camera: bool = True, pair_tolerance: float = 0.02, salvage: Salvage = "auto",
-                 max_bad_messages: int = 10, max_bad_fraction: float = 0.01):
+                 max_bad_messages: int = 10, max_bad_fraction: float = 0.01, ground_truth: bool = True):
         self.path = Path(path)
+        self.read_ground_truth = bool(ground_truth)
         self.max_bad_messages = int(max_bad_messages)
         self.max_bad_fraction = float(max_bad_fraction)
         self.bad_messages: dict[str, dict] = {}  # topic -> count, first stamps, first reason (skipped)
@@ -389,7 +392,8 @@ class BagReader:
         self.message_counts = dict(self._source.counts)
         self._resolve_topics()
         self._read_calibration()
-        self._read_ground_truth()
+        if self.read_ground_truth:
+            self._read_ground_truth()
         self._read_metadata()
 
     def close(self) -> None:
@@ -774,10 +778,15 @@ class BagReader:
 
     def _camera_frame(self, stamp: float, rgb: np.ndarray | None, depth: np.ndarray | None) -> CameraFrame:
         assert self.camera_info is not None
-        frame = CameraFrame(stamp=stamp, info=self.camera_info, rgb=rgb, depth_m=depth)
-        if self.groundtruth is not None and self.T_base_camera is not None:
-            frame.T_world_camera = self.groundtruth.T_world_base_at(stamp) @ self.T_base_camera
-        return frame
+        return CameraFrame(stamp=stamp, info=self.camera_info, rgb=rgb, depth_m=depth,
+                           T_world_camera=self.true_camera_pose(stamp))
+
+    def true_camera_pose(self, stamp: float) -> np.ndarray | None:
+        """The camera's true pose at ``stamp`` (``camera_color_optical_frame`` in ``world``) from the
+        bag's ground truth; None without it."""
+        if self.groundtruth is None or self.T_base_camera is None:
+            return None
+        return self.groundtruth.T_world_base_at(stamp) @ self.T_base_camera
 
     # --- bad messages ---
     def _skip(self, topic: str, t: float, exc: Exception) -> None:

@@ -126,7 +126,6 @@ def replay(args) -> int:
     from stack.interfaces import ImportPathError, load_detector, odometry_factory, resolve_policy
     from testbed.commands.options import finish_outputs, refuse_unapplied
     from testbed.replay import BagTopics, print_replay_summary, replay_bag
-    from testbed.run import make_detector
 
     try:
         config = config_from_args(args)  # [run] is the simulator's: read, not used here
@@ -136,10 +135,9 @@ def replay(args) -> int:
     d, c = config.detector, config.components
     try:
         policy = resolve_policy(config.store.policy)
-        if args.odometry_only:
-            detector = None
-        else:
-            detector = load_detector(c.detector) if c.detector else make_detector(d.input, d.stages, d.fpr, config=d)
+        # the DOPE detector (no --set components.detector) is built by replay_bag: in its detector process
+        # only, where it runs in one
+        detector = load_detector(c.detector) if c.detector and not args.odometry_only else None
         odometry_factory(c.odometry)
     except ImportPathError as e:
         print(f"dopeslam replay: --{e}", file=sys.stderr)
@@ -170,11 +168,11 @@ def replay(args) -> int:
                                 parallel=not args.sequential, results_bag=args.results_bag,
                                 loop_closure=config.loop_closure.enabled, vocabulary=config.loop_closure.vocabulary,
                                 detector=detector, odometry=c.odometry, odometry_only=args.odometry_only,
-                                odometry_config=config.odometry, keyframes=d.keyframes())
+                                odometry_config=config.odometry, keyframes=d.keyframes(), detector_config=d)
     except ImportPathError as e:  # the odometry's constructor failed
         print(f"dopeslam replay: --{e}", file=sys.stderr)
         return 2
-    finish_outputs(config.stack(), args.out, report, detector, seed=report.get("seed"))
+    finish_outputs(config.stack(), args.out, report, report["_detector"], seed=report.get("seed"))
     args.json_result = report  # --json (testbed/cli.py)
     print_replay_summary(report)
     print(f"wrote {args.out}/report.json, config.toml, labels.xlsx, labels.json, map.png, estimate_tum.txt"

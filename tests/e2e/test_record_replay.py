@@ -397,3 +397,48 @@ def test_replay_detection_process_gives_the_thread_s_results(live, tmp_path, mon
         assert reports["1"]["time_split_s"]["image_reading"] > 0
         if gate is not None:
             assert 0 < da["keyframe_held_images"] < 81
+
+
+def test_replay_command_builds_its_network_in_the_detector_process_only(live, tmp_path, monkeypatch, capsys):
+    """``dopeslam replay`` builds the DOPE network only where it runs: in the detector process, none in
+    the command's own process, which still names the detector, its precision and the weights' hash;
+    in a thread (``DOPESLAM_DETECTOR_PROCESS=0``) one, here. The same bytes either way. A weights
+    file that is not one ends in one line and exit status 2 either way, nothing written."""
+    from stack import dope_fpr
+    from stack.dope_fpr import default_weights, file_sha256
+    from testbed.cli import main
+
+    built = []
+    real_init = dope_fpr.DopeDetector.__init__
+
+    def counting_init(self, *a, **kw):
+        built.append(1)
+        real_init(self, *a, **kw)
+
+    monkeypatch.setattr(dope_fpr.DopeDetector, "__init__", counting_init)
+    reports = {}
+    for mode, here in (("1", 0), ("0", 1)):
+        monkeypatch.setenv("DOPESLAM_DETECTOR_PROCESS", mode)
+        built.clear()
+        out = tmp_path / f"cli{mode}"
+        assert main(["replay", "-q", str(live["bag"]), "--set", "detector.stages=2", "--out", str(out)]) == 0
+        assert len(built) == here
+        reports[mode] = report = json.loads((out / "report.json").read_text())
+        assert report["detector_processes"] == int(mode)
+        assert report["detector"] == "stack.dope_fpr:DopeDetector" and report["network_precision"] == "fp32"
+        assert report["provenance"]["weights_sha256"] == file_sha256(default_weights("rgb"))
+        assert report["provenance"]["fpr_thresholds_sha256"] is not None
+    for name in ("labels.json", "estimate_tum.txt"):
+        assert (tmp_path / "cli1" / name).read_bytes() == (tmp_path / "cli0" / name).read_bytes(), name
+    assert reports["1"]["detection"]["frames"] == reports["0"]["detection"]["frames"] > 0
+
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"\x00not a network" * 64)
+    capsys.readouterr()
+    for mode in ("1", "0"):
+        monkeypatch.setenv("DOPESLAM_DETECTOR_PROCESS", mode)
+        out = tmp_path / f"bad{mode}"
+        rc = main(["replay", "-q", str(live["bag"]), "--set", f"detector.weights={junk}", "--out", str(out)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and err and err[-1].startswith("dopeslam replay: ") and str(junk) in err[-1], err[-3:]
+        assert "Traceback" not in "\n".join(err) and not out.exists()

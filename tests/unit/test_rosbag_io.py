@@ -121,6 +121,26 @@ def test_round_trip_returns_what_was_written(tmp_path, fmt, storage, name):
     np.testing.assert_array_equal(map_points, np.arange(30, dtype=np.float32).reshape(10, 3))
 
 
+def test_a_reader_for_the_sensors_only_leaves_the_ground_truth_unread(tmp_path):
+    """Replay's detector process reads the bag without its ground truth; the pipeline's reader gives
+    its frames the same true camera poses its own frames carry."""
+    from testbed.replay import _with_true_poses
+
+    path = tmp_path / "run.bag"
+    record(path, "ros1", "mcap", episode())
+    with BagReader(path) as full, BagReader(path, ground_truth=False) as sensors:
+        assert full.groundtruth is not None and sensors.groundtruth is None
+        assert sensors.true_camera_pose(T0) is None
+        want = [f for f in full.frames(lidar=False, odometry=False)]
+        got = [f for f in sensors.frames(lidar=False, odometry=False)]
+        assert len(want) == len(got) == 15 and all(f.T_world_camera is None for f in got)
+        filled = [f for f, _, _ in _with_true_poses(((f, None, 0.0) for f in got), full)]
+    for a, b in zip(want, filled):
+        assert a.stamp == b.stamp and a.T_world_camera is not None
+        np.testing.assert_array_equal(a.T_world_camera, b.T_world_camera)
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+
+
 @pytest.mark.parametrize("fmt,storage,name", FORMATS)
 def test_rosbags_own_reader_reads_every_message(tmp_path, fmt, storage, name):
     path = tmp_path / name
