@@ -15,7 +15,9 @@ import os
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from multiprocessing import shared_memory
+from pathlib import Path
 
 import numpy as np
 
@@ -95,6 +97,56 @@ def frame_fits(frame: CameraFrame, H: int, W: int) -> bool:
         (depth is None or (depth.dtype == np.float32 and depth.shape == (H, W)))
 
 
+# --- what the children report ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class BuiltDetector:
+    """The detector a child process built and ran, as the report and the outputs' provenance name
+    it (the parent builds no network of its own)."""
+
+    name: str  # module:Class
+    weights_path: Path | None
+    thresholds_path: Path | None
+    precision: str | None
+
+    @staticmethod
+    def json_of(detector) -> dict:
+        """What the parent needs to know of ``detector``, as JSON."""
+        def path(p):
+            return None if p is None else str(p)
+
+        return {"name": detector_name(detector), "weights_path": path(getattr(detector, "weights_path", None)),
+                "thresholds_path": path(getattr(detector, "thresholds_path", None)),
+                "precision": getattr(detector, "precision", None)}
+
+    @staticmethod
+    def from_json(d: dict) -> "BuiltDetector":
+        def path(p):
+            return None if p is None else Path(p)
+
+        return BuiltDetector(str(d["name"]), path(d["weights_path"]), path(d["thresholds_path"]), d["precision"])
+
+
+def detector_name(detector) -> str:
+    """``module:Class`` of a detector (of a :class:`BuiltDetector`, the one it names), or of any
+    component, for the report."""
+    if isinstance(detector, BuiltDetector):
+        return detector.name
+    cls = type(detector)
+    return f"{cls.__module__}:{cls.__qualname__}"
+
+
+def error_json(exc: BaseException) -> dict:
+    """A child's error as a reply: an error in what the user gave (a :class:`stack.errors.DopeSlamError`,
+    e.g. a weights file that is not one) apart, so the parent raises it as such."""
+    from stack.errors import DopeSlamError
+
+    if isinstance(exc, DopeSlamError):
+        return {"user_error": str(exc)}
+    return {"error": f"{type(exc).__name__}: {exc}"}
+
+
 # --- the parent's side ------------------------------------------------------------------------------
 
 def start_child(module: str):
@@ -132,7 +184,9 @@ class DetectionProcess(ChildOwner):
 
     ``submit(frame)`` copies the frame into a free slot and returns at once; jobs are done in order,
     so ``result()`` of a later job reads the replies of the earlier ones first. At most ``slots`` jobs
-    are in flight. ``close()`` ends the child (also on errors)."""
+    are in flight. ``close()`` ends the child (also on errors). ``built()``: the
+    :class:`BuiltDetector` the child runs (waits for it to be built). An error in what the user gave
+    (e.g. a weights file that is not one) is raised as a :class:`stack.errors.DopeSlamError`."""
 
     def __init__(self, kwargs: dict, info: CameraInfo, threads: int | None = 1, slots: int = 4):
         H, W = info.height, info.width
@@ -146,7 +200,7 @@ class DetectionProcess(ChildOwner):
         self._next = 0  # the next job's token
         self._done: dict[int, tuple] = {}  # replies read ahead of their turn
         self._read = 0  # replies read so far
-        self._ready = False
+        self._built: BuiltDetector | None = None  # from the child's first reply: its detector is built
 
     def _send(self, obj) -> None:
         try:
@@ -160,6 +214,11 @@ class DetectionProcess(ChildOwner):
         if not line:
             self._fail("the detector process exited")
         reply = json.loads(line)
+        if "user_error" in reply:
+            from stack.errors import DopeSlamError
+
+            self.close()
+            raise DopeSlamError(reply["user_error"])
         if "error" in reply:
             self._fail(reply["error"])
         return reply
@@ -167,6 +226,11 @@ class DetectionProcess(ChildOwner):
     def _fail(self, why: str):
         self.close()
         raise RuntimeError(f"detector process: {why}")
+
+    def built(self) -> BuiltDetector:
+        if self._built is None:
+            self._built = BuiltDetector.from_json(self._reply()["detector"])
+        return self._built
 
     def fits(self, frame: CameraFrame) -> bool:
         """Whether ``frame``'s images fit the slots (else ``submit`` raises ValueError)."""
@@ -197,9 +261,7 @@ class DetectionProcess(ChildOwner):
         return _Pending(self, token)
 
     def _collect_one(self) -> None:
-        if not self._ready:
-            self._reply()  # the child's "detector built"
-            self._ready = True
+        self.built()  # the child's first reply: its detector is built
         reply = self._reply()
         self._done[self._read] = ([decode_detection(d) for d in reply["detections"]], float(reply["seconds"]))
         self._read += 1
@@ -235,9 +297,9 @@ def _child_main() -> None:
         H, W = setup["height"], setup["width"]
         detector = build_detector(decode_value(setup["kwargs"]), setup["threads"])
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises
-        reply({"error": f"{type(exc).__name__}: {exc}"})
+        reply(error_json(exc))
         return
-    reply({"ready": True})
+    reply({"ready": True, "detector": BuiltDetector.json_of(detector)})
     for line in sys.stdin.buffer:
         try:
             job = json.loads(line)

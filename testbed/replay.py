@@ -42,7 +42,6 @@ from stack.transforms import transform_points
 from testbed.bags import BagReader, MissingTopicError
 from testbed.bags import topics as T
 from testbed.record import RESULTS_BAG_NAME, image_truth_from_json, write_results_bag
-from testbed.replay_detection import BuiltDetector
 from testbed.run import DetectionLog, _map_png, candidate_rows, score_detections, score_labels, score_trajectory
 from testbed.scoring import summary_line
 from testbed.io import check_new_output, edited_objects, output_dir, write_json
@@ -419,7 +418,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             "bag_seconds": span, "wall_seconds": wall, "real_time_factor": span / wall if wall > 0 else None,
             "parallel_passes": parallel, "detector_process": ahead is not None and not isinstance(ahead, DetectionAhead),
             "detector_processes": 0 if ahead is None or isinstance(ahead, DetectionAhead) else 1 + ahead.helper,
-            "detector": "none" if ran is None else ran.name if isinstance(ran, BuiltDetector) else detector_name(ran),
+            "detector": "none" if ran is None else detector_name(ran),
             "network_precision": getattr(ran, "precision", None),
             "odometry_class": detector_name(odom), "odometry_only": odometry_only,
             "time_split_s": {"odometry": pipe.timing["odometry"], "odometry_reading": read_s,

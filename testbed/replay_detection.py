@@ -14,18 +14,16 @@ from __future__ import annotations
 import json
 import os
 import sys
-from dataclasses import dataclass
 from multiprocessing import shared_memory
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
 from sim.child import ChildOwner
 from stack.messages import CameraFrame, CameraInfo
-from testbed.detection_process import (decode_detection, decode_value, encode_detection, encode_value,
-                                      frame_fits, slot_arrays,
-                                      slot_bytes, start_child)
+from testbed.detection_process import (BuiltDetector, decode_detection, decode_value, encode_detection,
+                                      encode_value, error_json, frame_fits, slot_arrays, slot_bytes,
+                                      start_child)
 
 _TOPIC_FIELDS = ("lidar", "rgb", "depth", "camera_info", "base_frame", "max_bad_messages")
 _POSE_FIELDS = ("T_base_lidar", "T_base_camera")
@@ -45,45 +43,12 @@ def _topics_from_json(d: dict):
                      **{f: None if d[f] is None else np.asarray(d[f], dtype=float) for f in _POSE_FIELDS})
 
 
-@dataclass(frozen=True)
-class BuiltDetector:
-    """The detector the child process built and ran, as the report and the outputs' provenance name
-    it: the parent builds no network of its own."""
-
-    name: str  # module:Class
-    weights_path: Path | None
-    thresholds_path: Path | None
-    precision: str | None
-
-    @staticmethod
-    def json_of(detector) -> dict:
-        """What the parent needs to know of ``detector``, as JSON."""
-        from testbed.run import detector_name
-
-        def path(p):
-            return None if p is None else str(p)
-
-        return {"name": detector_name(detector), "weights_path": path(getattr(detector, "weights_path", None)),
-                "thresholds_path": path(getattr(detector, "thresholds_path", None)),
-                "precision": getattr(detector, "precision", None)}
-
-    @staticmethod
-    def from_json(d: dict) -> "BuiltDetector":
-        def path(p):
-            return None if p is None else Path(p)
-
-        return BuiltDetector(str(d["name"]), path(d["weights_path"]), path(d["thresholds_path"]), d["precision"])
-
-
 def _error_json(exc: BaseException) -> dict:
-    from stack.errors import DopeSlamError
     from testbed.bags.errors import BagError
 
     if isinstance(exc, BagError):
         return {"bag_error": type(exc).__name__, "path": str(exc.path), "message": exc.message}
-    if isinstance(exc, DopeSlamError):  # what the user gave (e.g. a weights file) is wrong
-        return {"user_error": str(exc)}
-    return {"error": f"{type(exc).__name__}: {exc}"}
+    return error_json(exc)
 
 
 def _raise_error(reply: dict, bag: str):

@@ -27,6 +27,7 @@ from stack.metrics import ate_rmse, ate_rmse_umeyama, rpe, write_tum
 from stack.object_store import ObjectStore
 from stack.pipeline import DopeSlam
 from stack.transforms import transform_points
+from testbed.detection_process import detector_name
 from testbed.scoring import score_map, summary_line
 from testbed.io import edited_objects, output_dir, write_json
 
@@ -202,6 +203,11 @@ class _Ahead:
         self._gate = keyframe_gate(keyframes)
         self.wait_seconds = 0.0  # the pipeline's wait for a detection (not simulation time)
 
+    @property
+    def gate(self):
+        """The keyframe gate that decides which images are detected (None without one)."""
+        return self._gate
+
     def _detect(self, frame):
         t0 = time.perf_counter()
         dets = list(self._detector.detect(frame))
@@ -246,12 +252,6 @@ class _Ahead:
         return int(isinstance(msg, CameraFrame))
 
 
-def detector_name(detector) -> str:
-    """``module:Class`` of a detector, for the report."""
-    cls = type(detector)
-    return f"{cls.__module__}:{cls.__qualname__}"
-
-
 def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_mode="rgb", stages=6, fpr=True,
                 policy="robust-mean", duration=None, weights=None, detector=None, dope_every: int = 1,
                 write_outputs: bool = True, keep_detections: bool = False, bag_writer=None,
@@ -281,8 +281,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     (``testbed.settings.profile_sensors``; None: ``config``'s ``run.profile``, else ``full``).
     ``sequential``: run the detector in the message loop; by default it runs in a thread a few images
     ahead of the pipeline, with the camera rendered in a second process and the DOPE detector made
-    here in a child process with one torch thread (:func:`ahead_settings`, ``DOPESLAM_DETECTOR_PROCESS``;
-    the same results, less wall time), except in
+    only in a child process with one torch thread, started before the world is built
+    (:func:`ahead_settings`, ``DOPESLAM_DETECTOR_PROCESS``; the same results, less wall time), except in
     scenarios with events and with a detector bound to the episode, whose truth must be read at the
     image's own time, and while recording (``bag_writer``)."""
     from sim.episode import Episode
@@ -303,12 +303,18 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     # in the loop: with events, and while recording (the bag interleaves the ground truth by the loop)
     ahead_wanted, render_worker = ahead_settings(sequential or bool(scenario.events) or bag_writer is not None,
                                                  detector)
-    own_kwargs = None  # the DOPE detector made here, which the detector process can make too
+    in_process = None  # the camera of the detector process, where the DOPE detector runs in one
     if detector is None:
         from testbed.detection_process import build_detector
+        from testbed.settings import detection_process_wanted
 
         own_kwargs = detector_kwargs(input_mode, stages, fpr, weights, None if config is None else config.detector)
-        detector = build_detector(own_kwargs, torch_threads() or (1 if ahead_wanted else None))
+        if ahead_wanted and detection_process_wanted() and scenario.sensors.camera:
+            from sim.camera import default_camera_info
+
+            in_process = default_camera_info(scenario.sensors.camera_width, scenario.sensors.camera_height)
+        else:
+            detector = build_detector(own_kwargs, torch_threads() or (1 if ahead_wanted else None))
     dims = {c: s.dims for c, s in load_catalog().items()}
     if profile is None:
         profile = getattr(getattr(config, "run", None), "profile", "full")
@@ -321,10 +327,16 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         camera_rate, segmentation = profile_sensors(profile, scenario.sensors.camera_rate, needs)
     wall0 = time.perf_counter()
     lidar = getattr(getattr(config, "run", None), "lidar", None)
-    with Episode(scenario, seed=seed, duration=duration, light=light, camera_rate=camera_rate,
-                 segmentation=segmentation, render_worker=render_worker,
-                 lidar_packets=None if lidar is None else lidar == "packets") as ep, \
-            contextlib.ExitStack() as closing:
+    closing = contextlib.ExitStack()
+    process = None
+    if in_process is not None:  # started first: it builds its network while the world is built here
+        from testbed.detection_process import DetectionProcess
+
+        process = DetectionProcess(own_kwargs, in_process, torch_threads() or 1)
+        closing.callback(process.close)
+    with closing, Episode(scenario, seed=seed, duration=duration, light=light, camera_rate=camera_rate,
+                          segmentation=segmentation, render_worker=render_worker,
+                          lidar_packets=None if lidar is None else lidar == "packets") as ep:
         recorder = None
         if bag_writer is not None:
             from testbed.record import EpisodeRecorder
@@ -358,15 +370,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
         watch = EpisodeWatch(f"{ep.sc.name} seed {ep.seed}", ep.duration, truth=ep, pipe=pipe)
 
-        ahead = process = None
+        ahead = None
         if ahead_wanted:
-            from testbed.settings import detection_process_wanted
-
-            if own_kwargs is not None and detection_process_wanted() and ep.use_camera:
-                from testbed.detection_process import DetectionProcess
-
-                process = DetectionProcess(own_kwargs, ep.camera_info, torch_threads() or 1)
-                closing.callback(process.close)
             ahead = _Ahead(dyn.messages(), detector, dope_every, process=process, keyframes=keyframes)
         stream = ((m, None, 0.0) for m in dyn.messages()) if ahead is None else ahead
         for msg, found, found_s in stream:
@@ -422,12 +427,13 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         T_world_odom0 = ep.T_world_base_at(result.wheel_stamps[0])
         wheel_score = score_trajectory(result.wheel_stamps, result.T_odom_base, ep, T_world_odom0)
         labels, labels_summary = score_labels(store, ep.objects, T_world_map)
+        ran = detector if process is None else process.built()  # built here, or only in the detector process
         report = {
             "scenario": ep.sc.name, "seed": ep.seed, "light": ep.light, "profile": profile,
             "lidar": "packets" if ep.lidar_packets else "points",
             "camera_rate_hz": ep.camera_rate, "input": input_mode, "stages": stages,
-            "fpr": fpr, "policy": policy, "detector": detector_name(detector),
-            "network_precision": getattr(detector, "precision", None), "odometry_class": detector_name(odom),
+            "fpr": fpr, "policy": policy, "detector": detector_name(ran),
+            "network_precision": getattr(ran, "precision", None), "odometry_class": detector_name(odom),
             "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
             "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,
             "odometry": odo, "wheel_odometry": wheel_score,
@@ -437,14 +443,15 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             "map_floor": None if store.floor is None else {"normal": [float(v) for v in store.floor[0]],
                                                            "d_m": store.floor[1]},
         }
-        if pipe.keyframes is not None:  # images the keyframe gate kept from the detector
-            report["detection"]["keyframe_held_images"] = pipe.keyframes.held
+        gate = pipe.keyframes if ahead is None else ahead.gate  # where the detector runs ahead, its gate decides
+        if gate is not None:  # images the keyframe gate kept from the detector
+            report["detection"]["keyframe_held_images"] = gate.held
         dyn.report(report, store, T_world_map)
         watch.finish(store, T_world_map, labels_summary.get("map_labels"))
         if config is not None:
             from testbed.provenance import detector_files, provenance
 
-            w, t = detector_files(detector)
+            w, t = detector_files(ran)
             report["provenance"] = provenance(ep.seed, getattr(ep.sc, "source", None), w, t)
         if write_outputs:  # into a hidden sibling, renamed into place whole; report.json last
             with output_dir(out) as stage:

@@ -28,9 +28,20 @@ def test_run_in_darkness_publishes_only_labels_it_can_stand_behind(short_dark_sc
 
 
 @pytest.mark.slow
-def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys):
+def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys, monkeypatch):
+    from stack import dope_fpr
+
+    built = []  # DOPE networks built in this process: none while the detector process runs it
+    real_init = dope_fpr.DopeDetector.__init__
+
+    def counting_init(self, *a, **kw):
+        built.append(1)
+        real_init(self, *a, **kw)
+
+    monkeypatch.setattr(dope_fpr.DopeDetector, "__init__", counting_init)
     out = tmp_path / "run"
     assert main(["run", str(short_scenario), "--out", str(out), "--seed", "3"]) == 0
+    assert built == []
     report = json.loads((out / "report.json").read_text())
     for key in ("scenario", "seed", "sim_seconds", "wall_seconds", "real_time_factor", "odometry", "detection",
                 "labels", "labels_summary"):
@@ -54,9 +65,11 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys)
     for name in ("map.png", "estimate_tum.txt", "groundtruth_tum.txt", "labels.json"):
         assert (out / name).stat().st_size > 0
     assert "precision 100 %" in capsys.readouterr().out
-    # the detector ran in a thread ahead of the pipeline; in the message loop it gives the same bytes
+    assert report["detector"] == "stack.dope_fpr:DopeDetector" and report["network_precision"] == "fp32"
+    # the detector ran in a process ahead of the pipeline; in the message loop it gives the same bytes
     seq = tmp_path / "sequential"
     assert main(["run", str(short_scenario), "--out", str(seq), "--seed", "3", "--sequential"]) == 0
+    assert built == [1]
     for name in ("labels.json", "estimate_tum.txt"):
         assert (seq / name).read_bytes() == (out / name).read_bytes(), name
     assert json.loads((seq / "report.json").read_text())["detection"]["predictions"] == report["detection"]["predictions"]

@@ -4,6 +4,7 @@ import math
 import numpy as np
 import pytest
 
+from stack.errors import DopeSlamError
 from stack.messages import CameraInfo, Detection
 from testbed.detection_process import (DetectionProcess, decode_detection, decode_value, encode_detection,
                                        encode_value)
@@ -41,14 +42,19 @@ def test_what_cannot_pass_is_named():
         encode_value({"x": object()})
 
 
-def test_a_detector_the_child_cannot_build_is_an_error_in_the_parent(tmp_path):
-    bad = tmp_path / "missing.pt"
-    proc = DetectionProcess({"weights": str(bad), "input": "rgb", "stages": 6, "fpr": True},
-                            CameraInfo(8, 6, np.eye(3)))
-    with pytest.raises(RuntimeError, match="detector process: .*missing.pt"):
-        from stack.messages import CameraFrame
+@pytest.mark.parametrize("kwargs, error, says", [
+    ({"weights": "missing.pt"}, DopeSlamError, "missing.pt: DOPE weights file not found"),  # the user's: one line
+    ({"no_such_argument": 1}, RuntimeError, "detector process: TypeError: .*no_such_argument"),  # a bug: named
+])
+def test_a_detector_the_child_cannot_build_is_an_error_in_the_parent(tmp_path, kwargs, error, says):
+    from stack.messages import CameraFrame
 
+    kwargs = {"input": "rgb", "stages": 6, "fpr": True,
+              **{k: str(tmp_path / v) if k == "weights" else v for k, v in kwargs.items()}}
+    proc = DetectionProcess(kwargs, CameraInfo(8, 6, np.eye(3)))
+    with pytest.raises(error, match=says) as info:
         proc.submit(CameraFrame(0.0, CameraInfo(8, 6, np.eye(3)), np.zeros((6, 8, 3), np.uint8))).result()
+    assert error is RuntimeError or type(info.value) is DopeSlamError
     proc.close()
 
 
