@@ -378,10 +378,11 @@ def build(spec: PerceptionSpec, detector_factory: DetectorFactory, folder=None, 
     det_cols: dict[str, list] = {k: [] for k in DET_FIELDS}
     det_frame, det_stage = [], []
     jpeg, offsets = [], [0]
-    # the segmentation image is ground truth that only a detector reading the truth needs
+    # the segmentation image is ground truth that only a detector reading the truth needs; the camera is
+    # rendered in a second process while this one runs the detector (the same frames, in the same order)
     segmentation = not getattr(detector_factory, "images_only", False)
     with Episode(sc, seed=spec.seed, duration=spec.duration, light=spec.light, renderer=spec.renderer,
-                 segmentation=segmentation) as ep:
+                 segmentation=segmentation, render_worker=True) as ep:
         if ep.sc.name != spec.scenario:
             raise ValueError(f"scenario {ep.sc.name!r} does not match the spec's {spec.scenario!r}")
         live = LivePerception(ep, detector_factory(ep), classes, spec.input, spec.stages)
