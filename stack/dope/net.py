@@ -176,11 +176,14 @@ class WeightsError(DopeSlamError, ValueError):
     """A weights file that is missing or is not a DOPE network's (its path and what was expected)."""
 
 
-def load_weights(path, device: str | torch.device = "cpu") -> tuple[DopeNet, dict]:
-    """(model in eval mode, float32, on ``device``; the file's ``extra`` dict). Raises
-    :class:`WeightsError` for a missing file or one that is not a DOPE network's weights (loaded as
-    tensors only: nothing in it runs)."""
-    expected = "a DOPE weights file (a dict with 'config' and 'state_dict', as dopeslam train writes)"
+_EXPECTED = "a DOPE weights file (a dict with 'config' and 'state_dict', as dopeslam train writes)"
+
+
+def read_weights(path) -> dict:
+    """A weights file's contents (``config``, ``state_dict``, maybe ``extra``), read as tensors only:
+    nothing in it runs. Raises :class:`WeightsError` for a missing file or one that is not a DOPE
+    network's weights file."""
+    expected = _EXPECTED
     try:
         with warnings.catch_warnings():  # torch's notes on a foreign file's pickle protocol: the error below says it
             warnings.simplefilter("ignore", UserWarning)
@@ -192,8 +195,16 @@ def load_weights(path, device: str | torch.device = "cpu") -> tuple[DopeNet, dic
     except Exception as exc:  # noqa: BLE001 - torch's unpickler raises many kinds for foreign bytes
         why = (str(exc).strip().splitlines() or [type(exc).__name__])[0].split(". ")[0][:120]
         raise WeightsError(f"{path}: unreadable ({why}); expected {expected}") from None
-    if not isinstance(blob, dict) or "config" not in blob or "state_dict" not in blob:
+    if not isinstance(blob, dict) or not isinstance(blob.get("config"), dict) or "state_dict" not in blob:
         raise WeightsError(f"{path}: expected {expected}")
+    return blob
+
+
+def load_weights(path, device: str | torch.device = "cpu") -> tuple[DopeNet, dict]:
+    """(model in eval mode, float32, on ``device``; the file's ``extra`` dict). Raises
+    :class:`WeightsError` for a missing file or one that is not a DOPE network's weights (loaded as
+    tensors only: nothing in it runs)."""
+    blob = read_weights(path)
     try:
         model = DopeNet(DopeNetConfig.from_dict(blob["config"]))
         model.load_state_dict({k: v.float() for k, v in blob["state_dict"].items()})

@@ -522,16 +522,18 @@ def dope_weights_path(input_mode: str, weights=None) -> Path:
 def dope_stage_counts(input_mode: str, stages: int, weights=None) -> tuple:
     """The stage counts a cache of the real DOPE keeps: all of 1..(the network's stages) when the
     detector gives them from one pass (``detect_stages``), else the requested one."""
-    import torch
-
+    from stack.dope.net import WeightsError, read_weights
     from stack.dope_fpr import DopeDetector
 
     path = dope_weights_path(input_mode, weights)
     if not path.exists():
         raise PerceptionCacheError(f"{path}: no DOPE weights for input {input_mode!r} (train them with "
                                    "`dopeslam dope train`, or pass weights=...)")
-    blob = torch.load(str(path), map_location="cpu", weights_only=True)
-    n = int(blob["config"]["stages"])
+    config = read_weights(path)["config"]
+    try:
+        n = int(config["stages"])
+    except (KeyError, TypeError, ValueError):
+        raise WeightsError(f"{path}: its 'config' gives no number of stages") from None
     if hasattr(DopeDetector, "detect_stages"):
         return tuple(range(1, n + 1))
     return (min(int(stages), n),)

@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from stack.dope.net import N_AFFINITY, N_BELIEF, DopeNet, DopeNetConfig, load_weights, save_weights
+from stack.dope.net import N_AFFINITY, N_BELIEF, DopeNet, DopeNetConfig, load_weights, read_weights, save_weights
 
 
 @pytest.fixture(scope="module")
@@ -84,6 +84,22 @@ def test_loading_a_non_weights_file_names_the_file(tmp_path, kind):
     with pytest.raises(WeightsError, match="bad.pt") as info:
         load_weights(bad)
     assert isinstance(info.value, DopeSlamError) and "\n" not in str(info.value)
+    if kind not in ("bad config", "wrong tensors"):  # what reading alone can tell
+        with pytest.raises(WeightsError, match="bad.pt"):
+            read_weights(bad)
+
+
+def test_a_cache_of_weights_that_are_not_one_is_a_user_error(tmp_path):
+    from stack.dope.net import WeightsError
+    from testbed.envs.perception_cache import dope_stage_counts
+
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"\x00not a network" * 50)
+    with pytest.raises(WeightsError, match="bad.pt"):
+        dope_stage_counts("rgb", 6, bad)
+    torch.save({"config": {"width": 0.125}, "state_dict": {}}, bad)
+    with pytest.raises(WeightsError, match="no number of stages"):
+        dope_stage_counts("rgb", 6, bad)
 
 
 def test_expand_stages_repeats_the_last_stage():
