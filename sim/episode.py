@@ -283,6 +283,12 @@ class Episode:
         self.groundtruth = GroundTruth()
         self.T_world_map: np.ndarray | None = None
         self.wall_seconds = 0.0
+        # who decides which camera frames are drawn (set before iterating frames()): an object with
+        # ``see(msg)``, shown every message as it is made, and ``wants(t)``, asked when a frame is due;
+        # a frame not wanted is not rendered and comes out without pixels (``extra["unrendered"]``).
+        # None: every frame is drawn
+        self.camera_demand = None
+        self.unrendered_frames = 0
         # settle the robot on its wheels before time starts
         for _ in range(int(0.5 / self.dt)):
             p.stepSimulation(physicsClientId=self.client)
@@ -372,6 +378,7 @@ class Episode:
         # the (message, rows) made after it, held back to keep the time order]
         flight: deque = deque()
         submitted = 0
+        demand = self.camera_demand
         wall0 = time.perf_counter()
         for k in range(steps + 1):
             t = k * self.dt
@@ -391,8 +398,13 @@ class Episode:
                 if self.T_world_map is None:
                     self.T_world_map = self.T_world_base_at(scan.stamp)
                 out.append(scan)
+            if demand is not None:
+                for m in out:
+                    demand.see(m)
             if self.use_camera and k % cam_every == 0:
-                if not workers:
+                if demand is not None and not demand.wants(t):
+                    out.append(self._unrendered_frame(t, T_world_base))
+                elif not workers:
                     out.append(self._camera_frame(t, T_world_base))
                 else:  # hand out the oldest frame once every worker is busy, then start this one
                     if flight:
@@ -504,6 +516,14 @@ class Episode:
         rgb, depth, seg = render_rgbd(self.client, T_world_cam, self.camera_info, self.light_at(t), rng,
                                       self.sc.sensors.noise, self.renderer, segmentation=self.segmentation)
         return CameraFrame(t, self.camera_info, rgb, depth, T_world_cam, {"segmentation": seg})
+
+    def _unrendered_frame(self, t: float, T_world_base: np.ndarray) -> CameraFrame:
+        """A frame nobody will look at: its time and pose, no pixels. Its noise seed is drawn all the
+        same, so every later frame is the one it would have been."""
+        self._frame_seed()
+        self.unrendered_frames += 1
+        return CameraFrame(t, self.camera_info, None, None, T_world_base @ self._T_base_camera,
+                           {"segmentation": None, "unrendered": True})
 
     def _frame_seed(self) -> int:
         """Each frame's noise has its own seed, drawn in frame order, so a frame is the same whichever

@@ -91,6 +91,11 @@ def runs(iterable, desc: str, total: int | None = None, unit: str = "run"):
 _views: list = []  # live views a job reports to (testbed.view.RerunView), see watching()
 
 
+def views_active() -> bool:
+    """Whether a job started now reports to live views (:class:`watching`)."""
+    return bool(_views)
+
+
 class watching:
     """``with watching(view): run_episode(...)``: the jobs started inside report to ``view``."""
 

@@ -80,7 +80,8 @@ def test_keyframe_gate_runs_the_detector_on_fewer_images_with_the_same_bytes_ahe
         short_scenario, tmp_path):
     """``--set detector.keyframe_m=0.1 --set detector.keyframe_deg=5``: DOPE runs on an image once the
     robot has travelled 10 cm or turned 5 degrees since the last one it ran on (or after a second).
-    The detector process ahead of the pipeline and the message loop pass the same images."""
+    The detector process ahead of the pipeline and the message loop pass the same images; ahead, the
+    images held back are not rendered."""
     gate = ["--set", "detector.keyframe_m=0.1", "--set", "detector.keyframe_deg=5"]
     outs = []
     for extra in ([], ["--sequential"]):
@@ -94,4 +95,7 @@ def test_keyframe_gate_runs_the_detector_on_fewer_images_with_the_same_bytes_ahe
     assert d == {**reports[1]["detection"], "fps": d["fps"]}
     # 13 s at 0.25 m/s: about 33 images of 131 pass
     assert 25 <= d["frames"] <= 45 and d["frames"] + d["keyframe_held_images"] == 131
+    # ahead, the images the gate holds back are not rendered at all; in the loop every one is
+    assert reports[0]["camera_frames_unrendered"] == d["keyframe_held_images"]
+    assert reports[1]["camera_frames_unrendered"] == 0
     assert "keyframe_m = 0.1" in (outs[0] / "config.toml").read_text()

@@ -141,3 +141,40 @@ def test_the_interval_holds_for_stamps_read_back_from_nanoseconds():
         gate.on_wheel_odometry(_odom(0.0))
         assert gate.passes(_frame(15.0 + 1e-9))
         assert gate.passes(_frame(later)), later
+
+
+@pytest.mark.parametrize("every,settings", [(1, KeyframeSettings(min_motion_m=0.1, min_turn_deg=5.0, max_interval_s=0.5)),
+                                            (2, KeyframeSettings(min_motion_m=0.1, min_turn_deg=5.0, max_interval_s=0.5)),
+                                            (3, None)])
+def test_the_camera_demand_wants_exactly_the_images_the_detector_ahead_runs_on(every, settings):
+    """``dopeslam run`` leaves unrendered the images its detector ahead will not see: the demand, shown
+    the messages as the simulator makes them, wants the very images ``_Ahead`` detects."""
+    from testbed.run import _Ahead, _CameraDemand
+
+    assert _CameraDemand.useful(every, settings)
+    assert not _CameraDemand.useful(1, None) and not _CameraDemand.useful(1, KeyframeSettings())
+    demand, wanted = _CameraDemand(every, settings), []
+    for msg in _stream():
+        if isinstance(msg, CameraFrame):
+            if demand.wants(msg.stamp):
+                wanted.append(round(msg.stamp, 3))
+        else:
+            demand.see(msg)
+    det = _Counting()
+    ahead = [round(m.stamp, 3) for m, d, _ in _Ahead(_stream(), det, every, keyframes=settings)
+             if isinstance(m, CameraFrame) and d is not None]
+    assert wanted == ahead and len(ahead) < 40
+
+
+def test_the_detector_ahead_refuses_an_image_it_should_detect_that_was_not_rendered():
+    from testbed.run import _Ahead
+
+    def stream():
+        yield _frame(0.0)
+        frame = _frame(0.1)
+        frame.extra["unrendered"] = True
+        yield frame
+
+    with pytest.raises(RuntimeError, match="not rendered"):
+        list(_Ahead(stream(), _Counting(), 1))
+

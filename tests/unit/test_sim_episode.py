@@ -87,6 +87,53 @@ def test_render_worker_gives_the_same_frames_in_the_same_order():
             np.testing.assert_array_equal(a.T_world_camera, b.T_world_camera)
 
 
+class _EveryOther:
+    """A camera demand wanting the 1st, 3rd, 5th... frame; it notes the messages it was shown."""
+
+    def __init__(self):
+        self.seen, self.asked = [], []
+
+    def see(self, msg):
+        self.seen.append((type(msg), msg.stamp))
+
+    def wants(self, t):
+        self.asked.append(t)
+        return len(self.asked) % 2 == 1
+
+
+@pytest.mark.parametrize("worker", [False, 2])
+def test_frames_nobody_wants_are_not_rendered_and_the_rest_are_unchanged(worker):
+    """``Episode.camera_demand``: a frame it does not want comes out in its place with its pose and no
+    pixels; every other message, and every frame drawn, is the one drawn without a demand (each
+    frame's noise seed is still drawn in frame order). The demand sees every other message before it
+    is asked about a frame."""
+    sc = load_scenario(None)
+    sc = sc.model_copy(update={"route": sc.route.model_copy(update={"start_pause": 0.0})})
+    runs = {}
+    for demand in (None, _EveryOther()):
+        with Episode(sc, seed=11, duration=0.85, render_worker=worker) as ep:
+            ep.camera_demand = demand
+            runs[demand is not None] = list(ep.frames())
+            assert ep.unrendered_frames == (0 if demand is None else 4)
+    full, some = runs[False], runs[True]
+    assert [(type(m), m.stamp) for m in full] == [(type(m), m.stamp) for m in some]
+    assert demand.seen == [(type(m), m.stamp) for m in full if not isinstance(m, CameraFrame)]
+    assert demand.asked == [m.stamp for m in full if isinstance(m, CameraFrame)]
+    frames = [(a, b) for a, b in zip(full, some) if isinstance(a, CameraFrame)]
+    assert len(frames) == 9
+    for i, (a, b) in enumerate(frames):
+        np.testing.assert_array_equal(a.T_world_camera, b.T_world_camera)
+        if i % 2:
+            assert b.rgb is None and b.depth_m is None and b.extra == {"segmentation": None, "unrendered": True}
+        else:
+            np.testing.assert_array_equal(a.rgb, b.rgb)
+            np.testing.assert_array_equal(a.depth_m, b.depth_m)
+            np.testing.assert_array_equal(a.extra["segmentation"], b.extra["segmentation"])
+    for a, b in zip(full, some):
+        if isinstance(a, LidarScan):
+            np.testing.assert_array_equal(a.points, b.points)
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_render_workers_draw_while_the_consumer_works(workers):
     """When a frame is handed out, every worker is already drawing a later one (but at the end), so
