@@ -177,16 +177,32 @@ def make_odometry(odometry, T_base_lidar: np.ndarray, kiss_icp_config=None):
     return odometry(np.asarray(T_base_lidar, dtype=float))
 
 
-class _CameraDemand:
-    """Which camera frames the detector running ahead will look at, decided as the simulator makes
-    them (:attr:`sim.episode.Episode.camera_demand`): every ``every``-th image that a keyframe gate of
-    its own passes, fed the same wheel odometry in the same order as :class:`_Ahead`'s, so it wants
-    exactly the images that one detects. The rest are not rendered."""
+class _Schedule:
+    """Which images the detector ahead runs on: every ``every``-th image that the keyframe gate (of
+    ``keyframes``; None: none) passes, fed the wheel odometry in the order the messages come. One
+    rule for :class:`_Ahead` and :class:`_CameraDemand`, so both pick the same images."""
 
     def __init__(self, every: int, keyframes):
         from stack.keyframes import keyframe_gate
 
-        self._every, self._gate, self._images = max(1, int(every)), keyframe_gate(keyframes), 0
+        self.every, self.gate, self._images = max(1, int(every)), keyframe_gate(keyframes), 0
+
+    def see(self, msg) -> None:
+        if self.gate is not None and isinstance(msg, WheelOdometry):
+            self.gate.on_wheel_odometry(msg)
+
+    def runs_on(self, frame) -> bool:
+        """Whether the detector runs on ``frame`` (anything with a ``stamp``), the next image in order."""
+        run = self._images % self.every == 0 and (self.gate is None or self.gate.passes(frame))
+        self._images += 1
+        return run
+
+
+class _CameraDemand(_Schedule):
+    """Which camera frames the detector running ahead will look at, decided as the simulator makes
+    them (:attr:`sim.episode.Episode.camera_demand`): its own :class:`_Schedule`, shown the same
+    messages in the same order as :class:`_Ahead`'s, so it wants exactly the images that one
+    detects. The rest are not rendered."""
 
     @staticmethod
     def useful(every: int, keyframes) -> bool:
@@ -195,14 +211,8 @@ class _CameraDemand:
 
         return int(every) > 1 or keyframe_gate(keyframes) is not None
 
-    def see(self, msg) -> None:
-        if self._gate is not None and isinstance(msg, WheelOdometry):
-            self._gate.on_wheel_odometry(msg)
-
     def wants(self, t: float) -> bool:
-        run = self._images % self._every == 0 and (self._gate is None or self._gate.passes(SimpleNamespace(stamp=t)))
-        self._images += 1
-        return run
+        return self.runs_on(SimpleNamespace(stamp=t))
 
 
 class _Ahead:
@@ -220,22 +230,19 @@ class _Ahead:
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
 
-        from stack.keyframes import keyframe_gate
-
-        self._messages, self._detector, self._every = messages, detector, max(1, int(every))
+        self._messages, self._detector = messages, detector
         self._ahead = max(1, int(images_ahead))
         self._process = process
         self._pool = None if process is not None else \
             ThreadPoolExecutor(max_workers=1, thread_name_prefix="run-detection")
         self._queue: deque = deque()
-        self._images = 0
-        self._gate = keyframe_gate(keyframes)
+        self._schedule = _Schedule(every, keyframes)
         self.wait_seconds = 0.0  # the pipeline's wait for a detection (not simulation time)
 
     @property
     def gate(self):
         """The keyframe gate that decides which images are detected (None without one)."""
-        return self._gate
+        return self._schedule.gate
 
     def _detect(self, frame):
         t0 = time.perf_counter()
@@ -247,15 +254,13 @@ class _Ahead:
         try:
             for msg in self._messages:
                 job = None
-                if self._gate is not None and isinstance(msg, WheelOdometry):
-                    self._gate.on_wheel_odometry(msg)
+                self._schedule.see(msg)
                 if isinstance(msg, CameraFrame):
-                    if self._images % self._every == 0 and (self._gate is None or self._gate.passes(msg)):
-                        if msg.extra.get("unrendered"):  # the camera demand and this gate disagree: a bug
+                    if self._schedule.runs_on(msg):
+                        if msg.extra.get("unrendered"):  # the camera demand and this schedule disagree: a bug
                             raise RuntimeError(f"image at {msg.stamp:.6f} s: to be detected, but not rendered")
                         job = self._process.submit(msg) if self._process is not None \
                             else self._pool.submit(self._detect, msg)
-                    self._images += 1
                     pending += 1
                 self._queue.append((msg, job))
                 while pending > self._ahead:

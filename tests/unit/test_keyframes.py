@@ -177,4 +177,3 @@ def test_the_detector_ahead_refuses_an_image_it_should_detect_that_was_not_rende
 
     with pytest.raises(RuntimeError, match="not rendered"):
         list(_Ahead(stream(), _Counting(), 1))
-
