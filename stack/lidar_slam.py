@@ -156,12 +156,30 @@ class LidarOdometry:
     def __init__(self, T_base_velodyne: np.ndarray, config: LidarOdometryConfig | None = None):
         from kiss_icp.kiss_icp import KissICP
 
+        self._init_state(T_base_velodyne, config)
+        self._icp = KissICP(self.config.to_kiss())
+
+    @classmethod
+    def follower(cls, T_base_velodyne: np.ndarray, config: LidarOdometryConfig | None = None) -> "LidarOdometry":
+        """An odometry that registers nothing itself and follows one that runs elsewhere (another
+        process) with the same ``T_base_velodyne`` and ``config``: each ``process(scan)`` takes the
+        next of that one's :meth:`step` records given to :meth:`feed` (one per scan, in order), after
+        which ``pose_at``, ``trajectory``, ``last_stamp``, ``floor_plane_map`` and ``stats`` answer
+        with the same bits as it does."""
+        from collections import deque
+
+        self = cls.__new__(cls)
+        self._init_state(T_base_velodyne, config)
+        self._icp = None
+        self._fed = deque()
+        return self
+
+    def _init_state(self, T_base_velodyne: np.ndarray, config: LidarOdometryConfig | None) -> None:
         self.config = config or LidarOdometryConfig()
         self.T_base_velodyne = np.asarray(T_base_velodyne, dtype=float).copy()
         if self.T_base_velodyne.shape != (4, 4):
             raise ValueError(f"T_base_velodyne must be 4x4, got {self.T_base_velodyne.shape}")
         self._T_velodyne_base = inv(self.T_base_velodyne)
-        self._icp = KissICP(self.config.to_kiss())
         self._track = PoseTrack()  # T_map_base per registered scan
         # sensor velocity arriving at a pose (zero at the first): what extrapolation before the first
         # pose (the second pose's) and after the last (the last pose's) uses
@@ -173,17 +191,57 @@ class LidarOdometry:
         self._floor: tuple[np.ndarray, float] | None = None  # floor plane (n, d), n.x + d = 0, KISS frame
         self.last_points_base: np.ndarray | None = None  # deskewed, voxelized points of the last scan
         self.stats = OdometryStats()
+        self._last_step: tuple[float, np.ndarray] | None = None  # the last process() call's new pose, if any
 
     # ------------------------------------------------------------------ main entry
 
     def process(self, scan: LidarScan) -> np.ndarray | None:
         """Register one sweep; returns ``T_map_base`` at the middle of the sweep, or None if skipped."""
+        if self._icp is None:
+            return self._follow()
         t_start = time.perf_counter()
         self.stats.scans_in += 1
+        self._last_step = None
         try:
             return self._process(scan)
         finally:
             self.stats.seconds += time.perf_counter() - t_start
+
+    def step(self) -> dict:
+        """What the last :meth:`process` call changed, as plain JSON values (floats round-trip
+        exactly), for a :meth:`follower` elsewhere: the new pose (``stamp``, ``pose`` as 16 numbers,
+        the sensor's ``twist`` then; all None when the scan was skipped), the floor plane and the
+        counters."""
+        stamp, pose = self._last_step if self._last_step is not None else (None, None)
+        return {"stamp": stamp, "pose": None if pose is None else pose.ravel().tolist(),
+                "twist": None if pose is None else self._twist_last.tolist(),
+                "floor": None if self._floor is None else [*self._floor[0].tolist(), self._floor[1]],
+                "stats": dict(vars(self.stats))}
+
+    def feed(self, step: dict, points_base: np.ndarray | None = None) -> None:
+        """A :meth:`follower`'s next scan, as the odometry it follows registered it: that one's
+        :meth:`step` after the scan, and ``points_base``, its ``last_points_base`` where the caller
+        needs them (else None here)."""
+        self._fed.append((step, points_base))
+
+    def _follow(self) -> np.ndarray | None:
+        """The next fed step taken: the pose it registered (None where it skipped the scan)."""
+        if not getattr(self, "_fed", None):
+            raise RuntimeError("LidarOdometry.follower(): process(scan) before its step was fed")
+        step, points_base = self._fed.popleft()
+        self.stats = OdometryStats(**step["stats"])
+        floor = step["floor"]
+        self._floor = None if floor is None else (np.asarray(floor[:3], dtype=float), float(floor[3]))
+        self.last_points_base = points_base
+        if step["pose"] is None:
+            return None
+        T = np.asarray(step["pose"], dtype=float).reshape(4, 4)
+        twist = np.asarray(step["twist"], dtype=float)
+        self._track.append(float(step["stamp"]), T)
+        if len(self._twist_early) < 2:
+            self._twist_early.append(twist.copy())
+        self._twist_last = twist
+        return T
 
     def _process(self, scan: LidarScan) -> np.ndarray | None:
         points, times = self._clean(scan)
@@ -265,6 +323,7 @@ class LidarOdometry:
         if len(self._twist_early) < 2:
             self._twist_early.append(self._twist.copy())
         self._twist_last = self._twist.copy()
+        self._last_step = (t_ref, T_map_base)
         self.last_points_base = frame_downsample @ self.T_base_velodyne[:3, :3].T + self.T_base_velodyne[:3, 3]
         self.stats.scans_used += 1
         return T_map_base

@@ -164,6 +164,18 @@ def ahead_settings(sequential: bool, detector) -> tuple[bool, bool]:
 DOPE_DETECTOR = "stack.dope_fpr:DopeDetector"
 
 
+def odometry_process_wanted(odometry) -> bool:
+    """Whether ``dopeslam run``'s KISS-ICP registers in a child process of its own
+    (:mod:`testbed.odometry_process`) where the detector runs ahead without a loop closer: for the
+    default odometry (``odometry`` None or its name), without live views (which read every sweep's
+    registered points), unless ``DOPESLAM_ODOMETRY_PROCESS=0``. The same bytes either way."""
+    from stack.interfaces import DEFAULT_ODOMETRY
+    from testbed.progress import views_active
+    from testbed.settings import odometry_process_wanted as wanted
+
+    return (odometry is None or odometry == DEFAULT_ODOMETRY) and not views_active() and wanted()
+
+
 def make_odometry(odometry, T_base_lidar: np.ndarray, kiss_icp_config=None):
     """The pipeline's odometry: None or ``kiss-icp``: KISS-ICP with ``kiss_icp_config`` (a
     ``stack.lidar_slam.LidarOdometryConfig``); another name: :func:`stack.interfaces.load_odometry`;
@@ -222,22 +234,29 @@ class _Ahead:
     every ``every``-th image (None for the rest and for other messages), exactly what the pipeline's
     own call would have found, so the pipeline's results are the same bytes either way."""
 
-    def __init__(self, messages, detector, every: int = 1, images_ahead: int = 2, process=None, keyframes=None):
+    def __init__(self, messages, detector, every: int = 1, images_ahead: int = 2, process=None, keyframes=None,
+                 odometry=None, scans_ahead: int = 4):
         """``process``: a :class:`testbed.detection_process.DetectionProcess` that runs ``detector``'s
         twin in a child process (then no thread; the caller closes it). ``keyframes``: the pipeline's
         :class:`stack.keyframes.KeyframeSettings`; a gate of its own, fed the same messages in the same
-        order, passes the same images as the pipeline's."""
+        order, passes the same images as the pipeline's. ``odometry``: a
+        :class:`testbed.odometry_process.OdometryProcess` whose follower is the pipeline's odometry:
+        each sweep is handed to it as the simulator makes it, and its result is fed to the follower
+        before the sweep is given out (the caller closes it). At most ``images_ahead`` images and
+        ``scans_ahead`` sweeps wait ahead of the pipeline."""
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
 
         self._messages, self._detector = messages, detector
         self._ahead = max(1, int(images_ahead))
+        self._scans_ahead = max(1, int(scans_ahead))
         self._process = process
+        self._odometry = odometry
         self._pool = None if process is not None else \
             ThreadPoolExecutor(max_workers=1, thread_name_prefix="run-detection")
         self._queue: deque = deque()
         self._schedule = _Schedule(every, keyframes)
-        self.wait_seconds = 0.0  # the pipeline's wait for a detection (not simulation time)
+        self.wait_seconds = 0.0  # the pipeline's wait for a detection or a registration (not simulation time)
 
     @property
     def gate(self):
@@ -250,7 +269,7 @@ class _Ahead:
         return dets, time.perf_counter() - t0
 
     def __iter__(self):
-        pending = 0  # images in the queue
+        pending = {CameraFrame: 0, LidarScan: 0}  # images and sweeps in the queue
         try:
             for msg in self._messages:
                 job = None
@@ -261,13 +280,19 @@ class _Ahead:
                             raise RuntimeError(f"image at {msg.stamp:.6f} s: to be detected, but not rendered")
                         job = self._process.submit(msg) if self._process is not None \
                             else self._pool.submit(self._detect, msg)
-                    pending += 1
+                    pending[CameraFrame] += 1
+                elif isinstance(msg, LidarScan):
+                    if self._odometry is not None:
+                        self._odometry.submit(msg)
+                    pending[LidarScan] += 1
                 self._queue.append((msg, job))
-                while pending > self._ahead:
-                    pending -= self._take_is_image()
+                while pending[CameraFrame] > self._ahead or pending[LidarScan] > self._scans_ahead:
+                    kind = self._take()
+                    if kind in pending:
+                        pending[kind] -= 1
                     yield self._last
             while self._queue:
-                self._take_is_image()
+                self._take()
                 yield self._last
         finally:
             for _, job in self._queue:
@@ -276,16 +301,23 @@ class _Ahead:
             if self._pool is not None:
                 self._pool.shutdown(wait=True)
 
-    def _take_is_image(self) -> int:
+    def _take(self) -> type | None:
+        """The oldest message, made ready for the pipeline (its detections, its registration), into
+        ``_last``; returns its type."""
         msg, job = self._queue.popleft()
         if job is None:
             self._last = (msg, None, 0.0)
+            if self._odometry is not None and isinstance(msg, LidarScan):
+                t0 = time.perf_counter()
+                if self._odometry.take() is not msg:
+                    raise RuntimeError(f"sweep at {msg.stamp:.6f} s: the odometry process answered another")
+                self.wait_seconds += time.perf_counter() - t0
         else:
             t0 = time.perf_counter()
             dets, seconds = job.result()
             self.wait_seconds += time.perf_counter() - t0
             self._last = (msg, dets, seconds)
-        return int(isinstance(msg, CameraFrame))
+        return CameraFrame if isinstance(msg, CameraFrame) else LidarScan if isinstance(msg, LidarScan) else None
 
 
 def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_mode="rgb", stages=6, fpr=True,
@@ -322,7 +354,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     scenarios with events and with a detector bound to the episode, whose truth must be read at the
     image's own time, and while recording (``bag_writer``). Ahead, where not every image is detected
     (``dope_every`` over 1, a keyframe gate), the images the detector will not see are not rendered
-    (:class:`_CameraDemand`; not with loop closure, faults or live views): the same results."""
+    (:class:`_CameraDemand`; not with loop closure, faults or live views): the same results. Ahead,
+    KISS-ICP registers the sweeps in a child process beside the simulator (:func:`odometry_process_wanted`;
+    not with loop closure, another odometry or live views): the same results."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
@@ -388,7 +422,16 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
             lc = LoopClosingRun() if config is None else \
                 LoopClosingRun(config.loop_closure.vocabulary, config.loop_closure.closure_config())
-        odom = make_odometry(odometry, ep.T_base_velodyne, None if config is None else config.odometry)
+        kiss = None  # KISS-ICP in a child process, beside the simulator (odometry_process_wanted)
+        if ahead_wanted and lc is None and odometry_process_wanted(odometry):
+            from stack.pipeline import MAP_EVERY
+            from testbed.odometry_process import OdometryProcess
+
+            kiss = OdometryProcess(ep.T_base_velodyne, None if config is None else config.odometry, MAP_EVERY)
+            closing.callback(kiss.close)
+            odom = kiss.odometry
+        else:
+            odom = make_odometry(odometry, ep.T_base_velodyne, None if config is None else config.odometry)
         keyframes = None if config is None else config.detector.keyframes()
         pipe = DopeSlam(odom, detector, ep.T_base_camera, dims, policy, loop_closer=lc, detect_every=dope_every,
                         keep_observations=keep_detections, keyframes=keyframes)
@@ -416,7 +459,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             if _CameraDemand.useful(dope_every, keyframes) and lc is None and dyn.injector is None \
                     and not views_active():
                 ep.camera_demand = _CameraDemand(dope_every, keyframes)
-            ahead = _Ahead(dyn.messages(), detector, dope_every, process=process, keyframes=keyframes)
+            ahead = _Ahead(dyn.messages(), detector, dope_every, process=process, keyframes=keyframes, odometry=kiss)
         stream = ((m, None, 0.0) for m in dyn.messages()) if ahead is None else ahead
         for msg, found, found_s in stream:
             simulation_s += time.perf_counter() - t_last
@@ -456,7 +499,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             result.store.evidence = config.evidence_or_none()
             result.store.publish()
         dlog.seconds = pipe.timing["detection"]
-        timing = {"simulation": simulation_s, "odometry": pipe.timing["odometry"], "dope": pipe.timing["detection"],
+        timing = {"simulation": simulation_s,
+                  "odometry": pipe.timing["odometry"] if kiss is None else odom.stats.seconds,
+                  "dope": pipe.timing["detection"],
                   "fusion": pipe.timing["fusion"]}
         if recorder is not None:
             recorder.finish()
@@ -479,6 +524,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             "input": input_mode, "stages": stages,
             "fpr": fpr, "policy": policy, "detector": detector_name(ran),
             "network_precision": getattr(ran, "precision", None), "odometry_class": detector_name(odom),
+            "odometry_process": kiss is not None,
             "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
             "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,
             "odometry": odo, "wheel_odometry": wheel_score,

@@ -93,6 +93,14 @@ def detection_process_wanted(environ: Mapping[str, str] | None = None) -> bool:
     return environ.get("DOPESLAM_DETECTOR_PROCESS", "").strip() != "0"
 
 
+def odometry_process_wanted(environ: Mapping[str, str] | None = None) -> bool:
+    """``DOPESLAM_ODOMETRY_PROCESS``: ``0`` keeps the KISS-ICP that ``testbed.run`` runs beside its
+    detector ahead in the command's own process; anything else or unset, a child process where it
+    may (:mod:`testbed.odometry_process`). The same bytes either way."""
+    environ = os.environ if environ is None else environ
+    return environ.get("DOPESLAM_ODOMETRY_PROCESS", "").strip() != "0"
+
+
 def replay_detector_processes(environ: Mapping[str, str] | None = None) -> int | None:
     """``DOPESLAM_DETECTOR_PROCESS`` for replay's detector side: ``1`` or ``2`` processes, or None
     (unset or anything else: replay chooses; ``0``, a thread, is :func:`detection_process_wanted`'s)."""

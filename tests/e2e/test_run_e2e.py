@@ -81,16 +81,20 @@ def test_keyframe_gate_runs_the_detector_on_fewer_images_with_the_same_bytes_ahe
     """``--set detector.keyframe_m=0.1 --set detector.keyframe_deg=5``: DOPE runs on an image once the
     robot has travelled 10 cm or turned 5 degrees since the last one it ran on (or after a second).
     The detector process ahead of the pipeline and the message loop pass the same images; ahead, the
-    images held back are not rendered."""
+    images held back are not rendered, and KISS-ICP registers in a process of its own: the same
+    trajectory, labels and LiDAR map (the results bag), byte for byte."""
     gate = ["--set", "detector.keyframe_m=0.1", "--set", "detector.keyframe_deg=5"]
     outs = []
     for extra in ([], ["--sequential"]):
         out = tmp_path / ("loop" if extra else "ahead")
         assert main(["run", str(short_scenario), "--out", str(out), "--seed", "3", *gate, *extra]) == 0
         outs.append(out)
-    for name in ("labels.json", "estimate_tum.txt"):
+    for name in ("labels.json", "estimate_tum.txt", "results_bag/results_bag.mcap"):
         assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
     reports = [json.loads((o / "report.json").read_text()) for o in outs]
+    assert [r["odometry_process"] for r in reports] == [True, False]
+    assert reports[0]["odometry"] == {**reports[1]["odometry"], "odometry_hz": reports[0]["odometry"]["odometry_hz"]}
+    assert reports[0]["time_split_s"]["odometry"] > 0
     d = reports[0]["detection"]
     assert d == {**reports[1]["detection"], "fps": d["fps"]}
     # 13 s at 0.25 m/s: about 33 images of 131 pass

@@ -172,6 +172,42 @@ def test_pose_at_interpolates_and_extrapolates_a_little(drive_and_scans, referen
     assert LidarOdometry(T_BASE_VELODYNE).pose_at(0.0) is None
 
 
+def test_a_follower_fed_each_step_answers_with_the_same_bits(drive_and_scans):
+    """An odometry registering elsewhere (another process) hands each scan's ``step()`` over as JSON;
+    a follower fed them answers every query as the one that registered, bit for bit, skipped scans,
+    extrapolation past both ends and the floor included."""
+    import json
+
+    _, scans = drive_and_scans
+    empty = LidarScan(scans[3].stamp + 0.01, np.empty((0, 3), np.float32), np.empty(0))
+    stream = scans[:3] + [empty] + scans[3:15] + [scans[10]]  # a skipped scan, and an old one again
+    odo = LidarOdometry(T_BASE_VELODYNE)
+    follower = LidarOdometry.follower(T_BASE_VELODYNE)
+    with pytest.raises(RuntimeError, match="fed"):
+        follower.process(scans[0])
+    for scan in stream:
+        pose = odo.process(scan)
+        follower.feed(json.loads(json.dumps(odo.step())), odo.last_points_base if pose is not None else None)
+        got = follower.process(LidarScan(scan.stamp, np.empty((0, 3)), np.empty(0)))
+        assert (got is None) == (pose is None)
+        if pose is not None:
+            assert got.tobytes() == pose.tobytes()
+            assert follower.last_points_base is odo.last_points_base or \
+                follower.last_points_base.tobytes() == odo.last_points_base.tobytes()
+        assert follower.last_stamp() == odo.last_stamp()
+    (s1, p1), (s2, p2) = odo.trajectory(), follower.trajectory()
+    assert len(s1) == 15 and s1.tobytes() == s2.tobytes() and p1.tobytes() == p2.tobytes()
+    for t in (s1[0] - 0.1, s1[0] - 0.01, s1[0], 0.5 * (s1[4] + s1[5]), s1[-1], s1[-1] + 0.05, s1[-1] + 0.19,
+              s1[-1] + 1.0):
+        a, b = odo.pose_at(t), follower.pose_at(t)
+        assert (a is None and b is None) or a.tobytes() == b.tobytes(), t
+    n1, d1 = odo.floor_plane_map()
+    n2, d2 = follower.floor_plane_map()
+    assert n1.tobytes() == n2.tobytes() and d1 == d2
+    assert vars(follower.stats) == vars(odo.stats)
+    assert odo.stats.skipped_few_points == 1 and odo.stats.skipped_time == 1
+
+
 # --------------------------------------------------------------------------------------------
 # robustness: every case warns and has a defined outcome
 
@@ -299,3 +335,51 @@ def test_wheel_odometry_track_starts_at_identity(caplog):
     with caplog.at_level(logging.WARNING):
         track.add(WheelOdometry(1.5, np.eye(4), 0.0, 0.0))
     assert _warned(caplog, "not after") and len(track) == 2
+
+
+def test_kiss_icp_in_a_child_process_gives_the_same_bits(drive_and_scans):
+    """``dopeslam run`` registers its sweeps in a child process (:mod:`testbed.odometry_process`): the
+    follower it feeds answers as KISS-ICP in this process does, bit for bit, skipped sweeps
+    included; the registered points come back for the sweeps the pipeline draws into its map. A child
+    that fails or dies is an error naming the odometry process, not a hang."""
+    from testbed.odometry_process import OdometryProcess
+
+    _, scans = drive_and_scans
+    empty = LidarScan(scans[3].stamp + 0.01, np.empty((0, 3), np.float32), np.empty(0))
+    stream = scans[:3] + [empty] + scans[3:12] + [scans[8]]
+    odo = LidarOdometry(T_BASE_VELODYNE)
+    kiss = OdometryProcess(T_BASE_VELODYNE, points_every=5)
+    try:
+        for scan in stream:
+            kiss.submit(scan)
+        assert kiss.in_flight == len(stream)
+        registered = 0
+        for scan in stream:
+            assert kiss.take() is scan
+            pose, got = odo.process(scan), kiss.odometry.process(scan)
+            assert (got is None) == (pose is None)
+            if pose is not None:
+                registered += 1
+                assert got.tobytes() == pose.tobytes()
+                sent = kiss.odometry.last_points_base
+                assert (sent is not None) == (registered % 5 == 1)
+                assert sent is None or sent.tobytes() == odo.last_points_base.tobytes()
+        assert registered == 12 and kiss.in_flight == 0
+        (s1, p1), (s2, p2) = odo.trajectory(), kiss.odometry.trajectory()
+        assert s1.tobytes() == s2.tobytes() and p1.tobytes() == p2.tobytes()
+        for t in (s1[0] - 0.05, 0.5 * (s1[2] + s1[3]), s1[-1] + 0.1):
+            assert odo.pose_at(t).tobytes() == kiss.odometry.pose_at(t).tobytes()
+        assert kiss.odometry.stats.skipped_few_points == odo.stats.skipped_few_points == 1
+    finally:
+        kiss.close()
+    kiss = OdometryProcess(T_BASE_VELODYNE)
+    kiss.submit(LidarScan(1.0, np.zeros((1000, 2)), np.zeros(1000)))  # 2000 numbers are not (N, 3) points
+    with pytest.raises(RuntimeError, match=r"^odometry process: ValueError"):
+        kiss.take()
+    kiss = OdometryProcess(T_BASE_VELODYNE)
+    kiss._proc.kill()
+    kiss._proc.wait()
+    kiss.submit(scans[0])
+    with pytest.raises(RuntimeError, match="^odometry process: it exited"):
+        kiss.take()
+    assert kiss._proc is None

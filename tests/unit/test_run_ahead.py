@@ -86,3 +86,62 @@ def test_replay_detector_processes_setting(value, expected):
     from testbed.settings import replay_detector_processes
 
     assert replay_detector_processes({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) == expected
+
+
+@pytest.mark.parametrize("value, expected", [(None, True), ("1", True), ("0", False), (" 0 ", False)])
+def test_odometry_process_setting(monkeypatch, value, expected):
+    from types import SimpleNamespace
+
+    from testbed.progress import watching
+    from testbed.run import odometry_process_wanted
+    from testbed.settings import odometry_process_wanted as wanted
+
+    assert wanted({} if value is None else {"DOPESLAM_ODOMETRY_PROCESS": value}) is expected
+    if value is None:
+        monkeypatch.delenv("DOPESLAM_ODOMETRY_PROCESS", raising=False)
+    else:
+        monkeypatch.setenv("DOPESLAM_ODOMETRY_PROCESS", value)
+    assert odometry_process_wanted(None) is expected and odometry_process_wanted("kiss-icp") is expected
+    assert not odometry_process_wanted("wheel") and not odometry_process_wanted(lambda T: None)
+    with watching(SimpleNamespace(close=lambda: None)):  # a live view reads every sweep's registered points
+        assert not odometry_process_wanted(None)
+
+
+class SweepLog:
+    """Stands in for the odometry process: records the order sweeps are handed over and taken."""
+
+    def __init__(self, answer_other=False):
+        self.events, self._queue, self._other = [], [], answer_other
+
+    def submit(self, scan):
+        self.events.append(("submit", scan.stamp))
+        self._queue.append(scan)
+
+    def take(self):
+        scan = self._queue.pop(0)
+        self.events.append(("take", scan.stamp))
+        return LidarScan(scan.stamp, scan.points, scan.times_s) if self._other else scan
+
+
+def test_each_sweep_is_registered_before_the_pipeline_gets_it_and_only_a_few_wait():
+    pulled = []
+
+    def sweeps_only(n=30):  # no camera: nothing but the sweep bound keeps the simulator near the pipeline
+        for i in range(n):
+            pulled.append(i)
+            yield LidarScan(stamp=i * 0.1, points=np.zeros((1, 3)), times_s=np.zeros(1))
+
+    log = SweepLog()
+    given = []
+    for msg, dets, _ in _Ahead(sweeps_only(), CountingDetector(), odometry=log, scans_ahead=3):
+        assert ("take", msg.stamp) in log.events and dets is None
+        assert len(pulled) - len(given) <= 4  # at most 3 wait, and the one given now
+        given.append(msg.stamp)
+    assert given == [i * 0.1 for i in range(30)]
+    assert [s for e, s in log.events if e == "submit"] == given == [s for e, s in log.events if e == "take"]
+    # with images, sweeps go to the odometry as they come, whatever the detector is doing
+    log = SweepLog()
+    out = list(_Ahead(_messages(), CountingDetector(), odometry=log))
+    assert [m.stamp for m, _, _ in out if isinstance(m, LidarScan)] == [s for e, s in log.events if e == "take"]
+    with pytest.raises(RuntimeError, match="answered another"):
+        list(_Ahead(_messages(), CountingDetector(), odometry=SweepLog(answer_other=True)))
