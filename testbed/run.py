@@ -164,16 +164,22 @@ def ahead_settings(sequential: bool, detector) -> tuple[bool, bool]:
 DOPE_DETECTOR = "stack.dope_fpr:DopeDetector"
 
 
-def odometry_process_wanted(odometry) -> bool:
+def odometry_process_wanted(odometry, every: int = 1, keyframes=None) -> bool:
     """Whether ``dopeslam run``'s KISS-ICP registers in a child process of its own
     (:mod:`testbed.odometry_process`) where the detector runs ahead without a loop closer: for the
     default odometry (``odometry`` None or its name), without live views (which read every sweep's
-    registered points), unless ``DOPESLAM_ODOMETRY_PROCESS=0``. The same bytes either way."""
+    registered points), where some images go undetected (``every`` over 1 or a keyframe gate: with
+    every image detected both cores are already busy and the extra process only costs time,
+    docs/speed.md). ``DOPESLAM_ODOMETRY_PROCESS=0`` never, ``=1`` whatever the schedule. The same
+    bytes either way."""
     from stack.interfaces import DEFAULT_ODOMETRY
     from testbed.progress import views_active
     from testbed.settings import odometry_process_wanted as wanted
 
-    return (odometry is None or odometry == DEFAULT_ODOMETRY) and not views_active() and wanted()
+    if not (odometry is None or odometry == DEFAULT_ODOMETRY) or views_active():
+        return False
+    asked = wanted()
+    return _CameraDemand.useful(every, keyframes) if asked is None else asked
 
 
 def make_odometry(odometry, T_base_lidar: np.ndarray, kiss_icp_config=None):
@@ -422,8 +428,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
             lc = LoopClosingRun() if config is None else \
                 LoopClosingRun(config.loop_closure.vocabulary, config.loop_closure.closure_config())
+        keyframes = None if config is None else config.detector.keyframes()
         kiss = None  # KISS-ICP in a child process, beside the simulator (odometry_process_wanted)
-        if ahead_wanted and lc is None and odometry_process_wanted(odometry):
+        if ahead_wanted and lc is None and odometry_process_wanted(odometry, dope_every, keyframes):
             from stack.pipeline import MAP_EVERY
             from testbed.odometry_process import OdometryProcess
 
@@ -432,7 +439,6 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             odom = kiss.odometry
         else:
             odom = make_odometry(odometry, ep.T_base_velodyne, None if config is None else config.odometry)
-        keyframes = None if config is None else config.detector.keyframes()
         pipe = DopeSlam(odom, detector, ep.T_base_camera, dims, policy, loop_closer=lc, detect_every=dope_every,
                         keep_observations=keep_detections, keyframes=keyframes)
         if config is not None:  # the store as configured (before the first message)

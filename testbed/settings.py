@@ -93,12 +93,14 @@ def detection_process_wanted(environ: Mapping[str, str] | None = None) -> bool:
     return environ.get("DOPESLAM_DETECTOR_PROCESS", "").strip() != "0"
 
 
-def odometry_process_wanted(environ: Mapping[str, str] | None = None) -> bool:
+def odometry_process_wanted(environ: Mapping[str, str] | None = None) -> bool | None:
     """``DOPESLAM_ODOMETRY_PROCESS``: ``0`` keeps the KISS-ICP that ``testbed.run`` runs beside its
-    detector ahead in the command's own process; anything else or unset, a child process where it
-    may (:mod:`testbed.odometry_process`). The same bytes either way."""
+    detector ahead in the command's own process; ``1``, a child process wherever it may
+    (:mod:`testbed.odometry_process`); unset or anything else, None: the run chooses. The same bytes
+    either way."""
     environ = os.environ if environ is None else environ
-    return environ.get("DOPESLAM_ODOMETRY_PROCESS", "").strip() != "0"
+    value = environ.get("DOPESLAM_ODOMETRY_PROCESS", "").strip()
+    return {"0": False, "1": True}.get(value)
 
 
 def replay_detector_processes(environ: Mapping[str, str] | None = None) -> int | None:

@@ -66,6 +66,7 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys,
         assert (out / name).stat().st_size > 0
     assert "precision 100 %" in capsys.readouterr().out
     assert report["detector"] == "stack.dope_fpr:DopeDetector" and report["network_precision"] == "fp32"
+    assert report["odometry_process"] is False  # every image detected: KISS-ICP stays in this process
     # the detector ran in a process ahead of the pipeline; in the message loop it gives the same bytes
     seq = tmp_path / "sequential"
     assert main(["run", str(short_scenario), "--out", str(seq), "--seed", "3", "--sequential"]) == 0

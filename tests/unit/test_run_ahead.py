@@ -73,25 +73,14 @@ def test_ahead_settings(monkeypatch, env, sequential, detector, expected):
     assert ahead_settings(sequential, detector) == expected
 
 
-@pytest.mark.parametrize("value, expected", [(None, True), ("1", True), ("0", False), (" 0 ", False)])
-def test_detection_process_setting(value, expected):
-    from testbed.settings import detection_process_wanted
-
-    assert detection_process_wanted({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) is expected
-
-
-@pytest.mark.parametrize("value, expected", [(None, None), ("", None), ("1", 1), (" 2 ", 2), ("0", None),
-                                             ("3", None), ("yes", None)])
-def test_replay_detector_processes_setting(value, expected):
-    from testbed.settings import replay_detector_processes
-
-    assert replay_detector_processes({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) == expected
-
-
-@pytest.mark.parametrize("value, expected", [(None, True), ("1", True), ("0", False), (" 0 ", False)])
+@pytest.mark.parametrize("value, expected", [(None, None), ("", None), ("yes", None), ("1", True), (" 1 ", True),
+                                             ("0", False), (" 0 ", False)])
 def test_odometry_process_setting(monkeypatch, value, expected):
+    """Unset, KISS-ICP moves to a process of its own only where some images go undetected (with every
+    image detected both cores are busy already); ``0`` never, ``1`` whatever the schedule."""
     from types import SimpleNamespace
 
+    from stack.keyframes import KeyframeSettings
     from testbed.progress import watching
     from testbed.run import odometry_process_wanted
     from testbed.settings import odometry_process_wanted as wanted
@@ -101,10 +90,15 @@ def test_odometry_process_setting(monkeypatch, value, expected):
         monkeypatch.delenv("DOPESLAM_ODOMETRY_PROCESS", raising=False)
     else:
         monkeypatch.setenv("DOPESLAM_ODOMETRY_PROCESS", value)
-    assert odometry_process_wanted(None) is expected and odometry_process_wanted("kiss-icp") is expected
-    assert not odometry_process_wanted("wheel") and not odometry_process_wanted(lambda T: None)
+    gate = KeyframeSettings(min_motion_m=0.1, min_turn_deg=5.0)
+    for odometry in (None, "kiss-icp"):
+        assert odometry_process_wanted(odometry) is (expected is True)  # every image detected
+        assert odometry_process_wanted(odometry, 2) is (expected is not False)
+        assert odometry_process_wanted(odometry, 1, gate) is (expected is not False)
+    for odometry in ("wheel", lambda T: None):
+        assert not odometry_process_wanted(odometry, 2)
     with watching(SimpleNamespace(close=lambda: None)):  # a live view reads every sweep's registered points
-        assert not odometry_process_wanted(None)
+        assert not odometry_process_wanted(None, 2)
 
 
 class SweepLog:
