@@ -73,6 +73,21 @@ def test_ahead_settings(monkeypatch, env, sequential, detector, expected):
     assert ahead_settings(sequential, detector) == expected
 
 
+@pytest.mark.parametrize("value, expected", [(None, True), ("1", True), ("0", False), (" 0 ", False)])
+def test_detection_process_setting(value, expected):
+    from testbed.settings import detection_process_wanted
+
+    assert detection_process_wanted({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) is expected
+
+
+@pytest.mark.parametrize("value, expected", [(None, None), ("", None), ("1", 1), (" 2 ", 2), ("0", None),
+                                             ("3", None), ("yes", None)])
+def test_replay_detector_processes_setting(value, expected):
+    from testbed.settings import replay_detector_processes
+
+    assert replay_detector_processes({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) == expected
+
+
 @pytest.mark.parametrize("value, expected", [(None, None), ("", None), ("yes", None), ("1", True), (" 1 ", True),
                                              ("0", False), (" 0 ", False)])
 def test_odometry_process_setting(monkeypatch, value, expected):
