@@ -209,10 +209,14 @@ def finished_report(cell_dir: Path) -> dict | None:
         return None
 
 
-def _worker_env() -> dict:
+def _worker_env(jobs: int = 1) -> dict:
+    """A cell process's environment: torch single-threaded; with cells side by side (``jobs`` over 1)
+    KISS-ICP stays in the cell's own process, as the cells already fill the cores (docs/speed.md)."""
     env = dict(os.environ)
     env.setdefault("DOPESLAM_TORCH_THREADS", "1")
     env.setdefault("OMP_NUM_THREADS", "1")
+    if jobs > 1:
+        env.setdefault("DOPESLAM_ODOMETRY_PROCESS", "0")
     return env
 
 
@@ -235,7 +239,7 @@ def worker_main(argv: list[str]) -> int:
     return 0
 
 
-def _run_in_process(cell: Cell, cell_dir: Path) -> tuple[str, str | None]:
+def _run_in_process(cell: Cell, cell_dir: Path, jobs: int = 1) -> tuple[str, str | None]:
     """One try of ``cell`` in a fresh interpreter; (status, error)."""
     cell_dir.parent.mkdir(parents=True, exist_ok=True)
     fd, result = tempfile.mkstemp(dir=cell_dir.parent, prefix=f".{cell_dir.name}.", suffix=".result.json")
@@ -243,7 +247,7 @@ def _run_in_process(cell: Cell, cell_dir: Path) -> tuple[str, str | None]:
     os.unlink(result)
     spec = json.dumps({"scenario": str(cell.scenario), "seed": int(cell.seed), "options": cell.options})
     try:
-        proc = subprocess.run([sys.executable, "-c", WORKER, spec, str(cell_dir), result], env=_worker_env(),
+        proc = subprocess.run([sys.executable, "-c", WORKER, spec, str(cell_dir), result], env=_worker_env(jobs),
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:
             outcome = json.loads(Path(result).read_text())
@@ -286,7 +290,9 @@ def _ray(ray_address: str | None):
     except ImportError:
         raise MatrixError("--ray: Ray is not installed; install it with: pip install -e '.[ray]'") from None
     if not ray.is_initialized():
-        env = {"env_vars": {"DOPESLAM_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1"}}
+        # a task per core: KISS-ICP stays in each cell's process, as with --jobs over 1
+        env = {"env_vars": {"DOPESLAM_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1",
+                            "DOPESLAM_ODOMETRY_PROCESS": os.environ.get("DOPESLAM_ODOMETRY_PROCESS", "0")}}
         extra = {}
         if ray_address and ray_address.split(":")[0] in ("127.0.0.1", "localhost"):
             extra["_node_ip_address"] = "127.0.0.1"  # a cluster on this machine's loopback: join it there
@@ -371,7 +377,7 @@ def _drive_processes(cells, keys, todo, out_dir, jobs, done) -> None:
         tries, status, error = 0, "error", None
         while tries <= RETRIES:
             tries += 1
-            status, error = _run_in_process(cells[i], out_dir / "cells" / keys[i])
+            status, error = _run_in_process(cells[i], out_dir / "cells" / keys[i], jobs)
             if status == "ok":
                 break
         return i, status, error, tries

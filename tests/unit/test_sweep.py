@@ -85,6 +85,19 @@ def test_perception_cache_cells_keyed_by_what_the_cache_depends_on(tmp_path):
         cell_key(cache_cell(no_such_option=1))
 
 
+def test_cell_processes_side_by_side_keep_kiss_icp_in_their_own_process(monkeypatch):
+    """Cells side by side already fill the cores: each keeps KISS-ICP in its own process, unless
+    the user set DOPESLAM_ODOMETRY_PROCESS; one cell at a time decides as ``dopeslam run`` does."""
+    from testbed.matrix import _worker_env
+
+    monkeypatch.delenv("DOPESLAM_ODOMETRY_PROCESS", raising=False)
+    assert "DOPESLAM_ODOMETRY_PROCESS" not in _worker_env(1)
+    assert _worker_env(2)["DOPESLAM_ODOMETRY_PROCESS"] == "0"
+    assert _worker_env(2)["DOPESLAM_TORCH_THREADS"] == _worker_env(1)["DOPESLAM_TORCH_THREADS"]
+    monkeypatch.setenv("DOPESLAM_ODOMETRY_PROCESS", "1")
+    assert _worker_env(2)["DOPESLAM_ODOMETRY_PROCESS"] == "1"
+
+
 def test_flatten_keeps_scalars_only():
     assert flatten({"a": {"b": 1, "c": [1, 2], "d": {"e": None}}, "f": "x", "g": 0.5}) == {
         "a.b": 1, "a.d.e": None, "f": "x", "g": 0.5}
