@@ -360,9 +360,10 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     scenarios with events and with a detector bound to the episode, whose truth must be read at the
     image's own time, and while recording (``bag_writer``). Ahead, where not every image is detected
     (``dope_every`` over 1, a keyframe gate), the images the detector will not see are not rendered
-    (:class:`_CameraDemand`; not with loop closure, faults or live views): the same results. Ahead,
-    KISS-ICP registers the sweeps in a child process beside the simulator (:func:`odometry_process_wanted`;
-    not with loop closure, another odometry or live views): the same results."""
+    (:class:`_CameraDemand`; not with loop closure, faults or live views): the same results. There,
+    KISS-ICP also registers the sweeps in a child process beside the simulator
+    (:func:`odometry_process_wanted`; not with loop closure, another odometry or live views): the
+    same results."""
     from sim.episode import Episode
     from sim.objects import load_catalog
 
