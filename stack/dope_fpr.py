@@ -613,11 +613,15 @@ class DopeDetector:
         return np.stack(xs).astype(np.float32), windows
 
     @torch.inference_mode()
-    def _forward(self, x: np.ndarray, stages: int):
+    def _forward(self, x: np.ndarray, stages: int, last_only: bool = False):
+        """Each stage's (belief, affinity) maps as float32 arrays, or only the last stage's
+        (``last_only``: the others are not copied out)."""
         xt = torch.from_numpy(x).to(self.device, self._dtype)
         if self.channels_last:
             xt = xt.contiguous(memory_format=torch.channels_last)
         out = self.model(xt, stages)
+        if last_only:
+            out = out[-1:]
         return [(b.float().cpu().contiguous().numpy(), a.float().cpu().contiguous().numpy()) for b, a in out]
 
     # decoding ------------------------------------------------------------------------------------
@@ -763,7 +767,7 @@ class DopeDetector:
         x, windows = self._inputs(frame)
         if not windows:
             return []
-        b, a = self._forward(x, self.stages)[-1]
+        b, a = self._forward(x, self.stages, last_only=True)[-1]
         dets = []
         for i, win in enumerate(windows):
             dets += self._decode(b[i], a[i], frame, self.stages, win)
