@@ -209,14 +209,23 @@ def finished_report(cell_dir: Path) -> dict | None:
         return None
 
 
+# cells side by side (--jobs over 1, a Ray task per core) already fill the cores: each keeps KISS-ICP
+# in its own process (docs/speed.md), unless the user set it
+SIDE_BY_SIDE_DEFAULTS = {"DOPESLAM_ODOMETRY_PROCESS": "0"}
+
+
+def _side_by_side_env() -> dict:
+    return {k: os.environ.get(k, v) for k, v in SIDE_BY_SIDE_DEFAULTS.items()}
+
+
 def _worker_env(jobs: int = 1) -> dict:
-    """A cell process's environment: torch single-threaded; with cells side by side (``jobs`` over 1)
-    KISS-ICP stays in the cell's own process, as the cells already fill the cores (docs/speed.md)."""
+    """A cell process's environment: torch single-threaded; with ``jobs`` over 1,
+    :data:`SIDE_BY_SIDE_DEFAULTS` where the user set nothing."""
     env = dict(os.environ)
     env.setdefault("DOPESLAM_TORCH_THREADS", "1")
     env.setdefault("OMP_NUM_THREADS", "1")
     if jobs > 1:
-        env.setdefault("DOPESLAM_ODOMETRY_PROCESS", "0")
+        env.update(_side_by_side_env())
     return env
 
 
@@ -290,9 +299,7 @@ def _ray(ray_address: str | None):
     except ImportError:
         raise MatrixError("--ray: Ray is not installed; install it with: pip install -e '.[ray]'") from None
     if not ray.is_initialized():
-        # a task per core: KISS-ICP stays in each cell's process, as with --jobs over 1
-        env = {"env_vars": {"DOPESLAM_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1",
-                            "DOPESLAM_ODOMETRY_PROCESS": os.environ.get("DOPESLAM_ODOMETRY_PROCESS", "0")}}
+        env = {"env_vars": {"DOPESLAM_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1", **_side_by_side_env()}}
         extra = {}
         if ray_address and ray_address.split(":")[0] in ("127.0.0.1", "localhost"):
             extra["_node_ip_address"] = "127.0.0.1"  # a cluster on this machine's loopback: join it there
