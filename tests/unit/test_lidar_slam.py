@@ -13,7 +13,8 @@ import pytest
 
 from stack import metrics
 from stack.config import ConfigError, resolve_config
-from stack.lidar_slam import LidarOdometry, LidarOdometryConfig, WheelOdometryTrack, se3_exp, se3_log
+from stack.lidar_slam import (LidarOdometry, LidarOdometryConfig, WheelOdometryTrack, deskew_to_middle, se3_exp,
+                              se3_log)
 from stack.messages import LidarScan, WheelOdometry
 from stack.transforms import from_xyz_rpy, interpolate, make_T
 
@@ -305,6 +306,49 @@ def test_se3_exp_log():
     # a quarter turn about z while moving forward pi/2 * r: an arc of radius 1 ends at (1, 1)
     T = se3_exp([math.pi / 2, 0, 0, 0, 0, math.pi / 2])
     np.testing.assert_allclose(T[:3, 3], [1, 1, 0], atol=1e-12)
+
+
+@pytest.mark.parametrize("turn", [0.0, 1e-12, 1e-6, 9.9e-4, 1.01e-3, 0.05, 1.0, 3.0])
+def test_deskew_is_the_exponential_at_each_point(turn):
+    """Each point moved by exp((s - 1/2) xi), s its time in [0, 1]: against the matrix exponential
+    (scipy's expm of the twist's 4x4 matrix), on both sides of the small-rotation series."""
+    from scipy.linalg import expm
+
+    rng = np.random.default_rng(7)
+    points = rng.normal(size=(5000, 3)) * 10  # more than one of the loop's chunks
+    times = 0.02 + np.sort(rng.uniform(0.0, 0.1, len(points)))
+    w = rng.normal(size=3)
+    xi = np.concatenate([rng.normal(size=3) * 0.2, w / np.linalg.norm(w) * turn])
+    X = np.zeros((4, 4))
+    X[:3, :3] = [[0, -xi[5], xi[4]], [xi[5], 0, -xi[3]], [-xi[4], xi[3], 0]]
+    X[:3, 3] = xi[:3]
+    s = (times - times.min()) / np.ptp(times)
+    pick = np.r_[0, len(points) - 1, rng.choice(len(points), 60, replace=False)]
+    want = np.array([(expm((s[i] - 0.5) * X) @ np.append(points[i], 1.0))[:3] for i in pick])
+    got = deskew_to_middle(points, times, xi)
+    np.testing.assert_allclose(got[pick], want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("turn", [0.0, 1e-4, 0.05, 1.0])
+def test_deskew_and_crop_are_kiss_icps(turn):
+    """KISS-ICP's own deskew (to the sweep's end) and range crop, then exp(xi / 2): the same points."""
+    from kiss_icp.preprocess import get_preprocessor
+
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(20000, 3)) * 8
+    times = np.repeat(np.linspace(0.0, 0.1, 2000), 10)
+    xi = np.array([0.03, -0.004, 0.001, 0.0, 0.0, 0.0])
+    xi[3:] = rng.normal(size=3) / np.sqrt(3) * turn
+    config = LidarOdometryConfig()
+    kiss = get_preprocessor(config.to_kiss()).preprocess(points, times, se3_exp(xi))
+    half = se3_exp(0.5 * xi)
+    kiss = kiss @ half[:3, :3].T + half[:3, 3]
+    ours = deskew_to_middle(points, times, xi)
+    d = np.linalg.norm(ours - half[:3, 3], axis=1)  # the range about the sensor at the sweep's end
+    kept = (d > config.min_range_m) & (d < config.max_range_m)
+    assert (d < config.min_range_m).any() and (d > config.max_range_m).any()  # cropped at both ends
+    assert len(kiss) == kept.sum()
+    np.testing.assert_allclose(ours[kept], kiss, rtol=0, atol=1e-9)
 
 
 def test_config_defaults_yaml_and_errors(tmp_path):
