@@ -656,8 +656,12 @@ class BagReader:
         if not {"x", "y", "z"} <= arrays.keys():
             raise UnsupportedEncodingError(self.path, topic, f"point fields {sorted(arrays)}",
                                            "fields x, y, z", self.topics)
-        points = np.stack([arrays["x"], arrays["y"], arrays["z"]], axis=1).astype(np.float32)
-        valid = np.isfinite(points).all(axis=1) & np.any(points != 0, axis=1)  # organised clouds mark no-returns
+        points = np.stack([arrays["x"], arrays["y"], arrays["z"]], axis=1).astype(np.float32, copy=False)
+        x, y, z = points.T  # column by column: numpy's row-wise all/any over 3 values is several times slower
+        valid = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+        valid &= (x != 0) | (y != 0) | (z != 0)  # organised clouds mark no-returns
+        if valid.all():
+            valid = slice(None)  # every point: no copies
         stamp_ns = time_ns(msg.header.stamp) or t_ns
         time_name = next((n for n in TIME_FIELD_NAMES if n in arrays), None)
         if time_name is None:
@@ -665,7 +669,7 @@ class BagReader:
                 log.warning("%s: %s has no per-point time field (%s); scans are not deskewed", self.path,
                             topic, "/".join(TIME_FIELD_NAMES))
                 self._time_field_warned = True
-            times = np.zeros(int(valid.sum()))
+            times = np.zeros(len(points[valid]))
         else:
             raw_times = arrays[time_name][valid]
             enc = self.time_encoding

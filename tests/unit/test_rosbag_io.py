@@ -1,6 +1,7 @@
 """The rosbag boundary: what goes into a bag comes back out, from our bags and from other drivers' layouts."""
 from __future__ import annotations
 
+import logging
 import os
 import time
 from pathlib import Path
@@ -220,6 +221,46 @@ def test_foreign_per_point_time_fields(tmp_path, case):
                    "timestamp_int32_us": 5e-7}.get(case, 5e-10)
             assert abs(scan.stamp - stamp) < 1e-6
             np.testing.assert_allclose(scan.times_s, offsets, atol=tol)
+
+
+@pytest.mark.parametrize("with_time", [True, False])
+def test_no_returns_of_an_organised_cloud_are_dropped(tmp_path, with_time, caplog):
+    """An organised cloud marks a beam without a return as (0, 0, 0) or NaN: exactly those points go,
+    and each kept point keeps its own time, ring and intensity; a cloud without any keeps them all."""
+    n = 600
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(size=(n, 3)).astype(np.float32) + 2.0
+    offsets = np.sort(rng.uniform(0.0, 0.099, n)).astype(np.float32)
+    ring, intensity = (np.arange(n) % 32).astype(np.uint16), rng.uniform(0, 255, n).astype(np.float32)
+    holes = xyz.copy()
+    holes[::7] = 0.0
+    holes[3::11, 1] = np.nan
+    holes[5::13, 2] = np.inf
+    holes[9::17, 0] = 0.0  # one coordinate zero: a real point
+    kept = np.isfinite(holes).all(axis=1) & (holes != 0).any(axis=1)
+    assert 0 < kept.sum() < n and kept[9]
+    stamps = [T0, T0 + 0.1]
+
+    def fields_of(stamp):
+        cloud = holes if stamp == T0 else xyz
+        f = {"x": cloud[:, 0], "y": cloud[:, 1], "z": cloud[:, 2], "intensity": intensity, "ring": ring}
+        return {**f, "time": offsets} if with_time else f
+
+    path = tmp_path / "organised.bag"
+    write_custom_lidar(path, stamps, fields_of)
+    with caplog.at_level(logging.WARNING), BagReader(path) as bag:
+        with_holes, whole = list(bag.scans())
+    np.testing.assert_array_equal(with_holes.points, holes[kept])
+    np.testing.assert_array_equal(with_holes.ring, ring[kept])
+    np.testing.assert_array_equal(with_holes.intensity, intensity[kept])
+    np.testing.assert_array_equal(whole.points, xyz)
+    np.testing.assert_array_equal(whole.ring, ring)
+    if with_time:
+        np.testing.assert_allclose(with_holes.times_s, offsets[kept], atol=1e-6)
+        np.testing.assert_allclose(whole.times_s, offsets, atol=1e-6)
+    else:
+        assert len(with_holes.times_s) == kept.sum() and not with_holes.times_s.any()
+        assert len(whole.times_s) == n
 
 
 def test_point_time_field_that_fits_no_unit_is_an_error(tmp_path):
