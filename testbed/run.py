@@ -164,6 +164,20 @@ def ahead_settings(sequential: bool, detector) -> tuple[bool, bool]:
 DOPE_DETECTOR = "stack.dope_fpr:DopeDetector"
 
 
+def detector_processes_wanted(every: int = 1, keyframes=None) -> int:
+    """How many detector processes ``dopeslam run`` starts ahead of the pipeline for its DOPE
+    detector: ``DOPESLAM_DETECTOR_PROCESS`` ``1`` or ``2`` when set; else two where every image is
+    detected (the network is then the run's longest path: the two detect the images in turn), one
+    where some go undetected (a keyframe gate, ``every`` over 1). The same bytes either way
+    (docs/speed.md)."""
+    from testbed.settings import replay_detector_processes
+
+    chosen = replay_detector_processes()
+    if chosen is not None:
+        return chosen
+    return 1 if _CameraDemand.useful(every, keyframes) else 2
+
+
 def odometry_process_wanted(odometry, every: int = 1, keyframes=None) -> bool:
     """Whether ``dopeslam run``'s KISS-ICP registers in a child process of its own
     (:mod:`testbed.odometry_process`) where the detector runs ahead without a loop closer: for the
@@ -243,7 +257,8 @@ class _Ahead:
     def __init__(self, messages, detector, every: int = 1, images_ahead: int = 2, process=None, keyframes=None,
                  odometry=None, scans_ahead: int = 4):
         """``process``: a :class:`testbed.detection_process.DetectionProcess` that runs ``detector``'s
-        twin in a child process (then no thread; the caller closes it). ``keyframes``: the pipeline's
+        twin in a child process (then no thread; the caller closes it), or a list of them, which
+        detect the images in turn (``images_ahead`` each). ``keyframes``: the pipeline's
         :class:`stack.keyframes.KeyframeSettings`; a gate of its own, fed the same messages in the same
         order, passes the same images as the pipeline's. ``odometry``: a
         :class:`testbed.odometry_process.OdometryProcess` whose follower is the pipeline's odometry:
@@ -254,11 +269,13 @@ class _Ahead:
         from concurrent.futures import ThreadPoolExecutor
 
         self._messages, self._detector = messages, detector
-        self._ahead = max(1, int(images_ahead))
+        self._processes = [] if process is None else list(process) if isinstance(process, (list, tuple)) \
+            else [process]
+        self._ahead = max(1, int(images_ahead)) * max(1, len(self._processes))
         self._scans_ahead = max(1, int(scans_ahead))
-        self._process = process
+        self._submitted = 0  # images handed to the detector processes, in turn
         self._odometry = odometry
-        self._pool = None if process is not None else \
+        self._pool = None if self._processes else \
             ThreadPoolExecutor(max_workers=1, thread_name_prefix="run-detection")
         self._queue: deque = deque()
         self._schedule = _Schedule(every, keyframes)
@@ -284,8 +301,11 @@ class _Ahead:
                     if self._schedule.runs_on(msg):
                         if msg.extra.get("unrendered"):  # the camera demand and this schedule disagree: a bug
                             raise RuntimeError(f"image at {msg.stamp:.6f} s: to be detected, but not rendered")
-                        job = self._process.submit(msg) if self._process is not None \
-                            else self._pool.submit(self._detect, msg)
+                        if self._processes:  # in turn: each process answers its own images in order
+                            job = self._processes[self._submitted % len(self._processes)].submit(msg)
+                            self._submitted += 1
+                        else:
+                            job = self._pool.submit(self._detect, msg)
                     pending[CameraFrame] += 1
                 elif isinstance(msg, LidarScan):
                     if self._odometry is not None:
@@ -355,7 +375,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     (``testbed.settings.profile_sensors``; None: ``config``'s ``run.profile``, else ``full``).
     ``sequential``: run the detector in the message loop; by default it runs in a thread a few images
     ahead of the pipeline, with the camera rendered in a second process and the DOPE detector made
-    only in a child process with one torch thread, started before the world is built
+    only in a child process with one torch thread, started before the world is built (two such
+    processes, images in turn, where every image is detected: :func:`detector_processes_wanted`)
     (:func:`ahead_settings`, ``DOPESLAM_DETECTOR_PROCESS``; the same results, less wall time), except in
     scenarios with events and with a detector bound to the episode, whose truth must be read at the
     image's own time, and while recording (``bag_writer``). Ahead, where not every image is detected
@@ -411,8 +432,12 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     if in_process is not None:  # started first: it builds its network while the world is built here
         from testbed.detection_process import DetectionProcess
 
-        process = DetectionProcess(own_kwargs, in_process, torch_threads() or 1)
-        closing.callback(process.close)
+        keyframes = None if config is None else config.detector.keyframes()
+        processes = [DetectionProcess(own_kwargs, in_process, torch_threads() or 1)
+                     for _ in range(detector_processes_wanted(dope_every, keyframes))]
+        for p in processes:
+            closing.callback(p.close)
+        process = processes[0]
     with closing, Episode(scenario, seed=seed, duration=duration, light=light, camera_rate=camera_rate,
                           segmentation=segmentation, render_worker=render_worker,
                           lidar_packets=None if lidar is None else lidar == "packets") as ep:
@@ -466,7 +491,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             if _CameraDemand.useful(dope_every, keyframes) and lc is None and dyn.injector is None \
                     and not views_active():
                 ep.camera_demand = _CameraDemand(dope_every, keyframes)
-            ahead = _Ahead(dyn.messages(), detector, dope_every, process=process, keyframes=keyframes, odometry=kiss)
+            ahead = _Ahead(dyn.messages(), detector, dope_every, process=None if process is None else processes,
+                           keyframes=keyframes, odometry=kiss)
         stream = ((m, None, 0.0) for m in dyn.messages()) if ahead is None else ahead
         for msg, found, found_s in stream:
             simulation_s += time.perf_counter() - t_last
@@ -531,7 +557,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             "input": input_mode, "stages": stages,
             "fpr": fpr, "policy": policy, "detector": detector_name(ran),
             "network_precision": getattr(ran, "precision", None), "odometry_class": detector_name(odom),
-            "odometry_process": kiss is not None,
+            "odometry_process": kiss is not None, "detector_processes": 0 if process is None else len(processes),
             "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
             "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,
             "odometry": odo, "wheel_odometry": wheel_score,

@@ -14,9 +14,10 @@ reads its two itself):
                             topomap_streams/; the simulator keeps its textures in assets/ under it
     DOPESLAM_DETECTOR_PROCESS  0: where testbed.run runs the DOPE detector ahead, and where replay
                             reads and detects the images beside the odometry, in a thread instead
-                            of a child process (read by detection_process_wanted); in replay 1: one
-                            child process, 2: two, images shared (unset: two where the detector runs on
-                            every image, else one; read by replay_detector_processes)
+                            of a child process (read by detection_process_wanted); 1: one child
+                            process, 2: two, images in turn (unset: two where the detector runs on
+                            every image, else one; read by replay_detector_processes, for replay and
+                            for testbed.run)
     DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode;
                             unset: on where testbed.run runs the detector ahead, else off)
     DOPESLAM_TORCH_THREADS  torch threads of the detector (read by stack.config.torch_threads;
@@ -104,8 +105,9 @@ def odometry_process_wanted(environ: Mapping[str, str] | None = None) -> bool | 
 
 
 def replay_detector_processes(environ: Mapping[str, str] | None = None) -> int | None:
-    """``DOPESLAM_DETECTOR_PROCESS`` for replay's detector side: ``1`` or ``2`` processes, or None
-    (unset or anything else: replay chooses; ``0``, a thread, is :func:`detection_process_wanted`'s)."""
+    """``DOPESLAM_DETECTOR_PROCESS`` for replay's detector side and ``testbed.run``'s detector ahead:
+    ``1`` or ``2`` processes, or None (unset or anything else: the command chooses; ``0``, a thread,
+    is :func:`detection_process_wanted`'s)."""
     environ = os.environ if environ is None else environ
     value = environ.get("DOPESLAM_DETECTOR_PROCESS", "").strip()
     return int(value) if value in ("1", "2") else None

@@ -67,6 +67,7 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys,
     assert "precision 100 %" in capsys.readouterr().out
     assert report["detector"] == "stack.dope_fpr:DopeDetector" and report["network_precision"] == "fp32"
     assert report["odometry_process"] is False  # every image detected: KISS-ICP stays in this process
+    assert report["detector_processes"] == 2  # ... and two detector processes take the images in turn
     # the detector ran in a process ahead of the pipeline; in the message loop it gives the same bytes
     seq = tmp_path / "sequential"
     assert main(["run", str(short_scenario), "--out", str(seq), "--seed", "3", "--sequential"]) == 0
@@ -94,6 +95,7 @@ def test_keyframe_gate_runs_the_detector_on_fewer_images_with_the_same_bytes_ahe
         assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
     reports = [json.loads((o / "report.json").read_text()) for o in outs]
     assert [r["odometry_process"] for r in reports] == [True, False]
+    assert [r["detector_processes"] for r in reports] == [1, 0]  # some images undetected: one is enough
     assert reports[0]["odometry"] == {**reports[1]["odometry"], "odometry_hz": reports[0]["odometry"]["odometry_hz"]}
     assert reports[0]["time_split_s"]["odometry"] > 0
     d = reports[0]["detection"]

@@ -88,6 +88,25 @@ def test_replay_detector_processes_setting(value, expected):
     assert replay_detector_processes({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) == expected
 
 
+@pytest.mark.parametrize("value", [None, "1", "2", "0", "yes"])
+def test_live_run_detector_processes(monkeypatch, value):
+    """Unset, ``dopeslam run`` starts two detector processes where every image is detected (the
+    network is the longest path) and one where some go undetected; ``1`` or ``2`` says how many."""
+    from stack.keyframes import KeyframeSettings
+    from testbed.run import detector_processes_wanted
+
+    if value is None:
+        monkeypatch.delenv("DOPESLAM_DETECTOR_PROCESS", raising=False)
+    else:
+        monkeypatch.setenv("DOPESLAM_DETECTOR_PROCESS", value)
+    gate = KeyframeSettings(min_motion_m=0.1, min_turn_deg=5.0)
+    forced = {"1": 1, "2": 2}.get(value)
+    assert detector_processes_wanted() == (forced or 2)
+    assert detector_processes_wanted(1, None) == (forced or 2)
+    assert detector_processes_wanted(2, None) == (forced or 1)
+    assert detector_processes_wanted(1, gate) == (forced or 1)
+
+
 @pytest.mark.parametrize("value, expected", [(None, None), ("", None), ("yes", None), ("1", True), (" 1 ", True),
                                              ("0", False), (" 0 ", False)])
 def test_odometry_process_setting(monkeypatch, value, expected):
