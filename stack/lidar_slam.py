@@ -169,11 +169,7 @@ def deskew_to_middle(points: np.ndarray, times: np.ndarray, xi: np.ndarray) -> n
     for i in range(0, len(points), _CHUNK):
         tau = (times[i:i + _CHUNK] - t0) / (t1 - t0) - 0.5
         p, o = points[i:i + _CHUNK], out[i:i + _CHUNK]
-        if th == 0.0:
-            np.multiply(tau[:, None], v, out=o)
-            o += p
-            continue
-        if th < 1e-3:  # |a| < 5e-4: Taylor series, exact to double precision
+        if th < 1e-3:  # |a| < 5e-4: Taylor series, exact to double precision (W = 0 at th = 0)
             a2 = (tau * th) ** 2
             A = tau * (1.0 - a2 / 6.0 * (1.0 - a2 / 20.0))
             B = tau * tau * (0.5 - a2 / 24.0 * (1.0 - a2 / 30.0))

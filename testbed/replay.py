@@ -209,14 +209,14 @@ def detection_process(bag_path, topics: BagTopics, input_mode: str, kwargs: dict
     Where the detector runs on every image (no keyframe gate, ``dope_every`` 1) it is the longest
     path, and a second process detects every other image (``DOPESLAM_DETECTOR_PROCESS`` ``1`` or
     ``2`` says how many; docs/speed.md)."""
-    from testbed.settings import detection_process_wanted, replay_detector_processes
+    from testbed.settings import detection_process_wanted, detector_processes_setting
 
     if kwargs is None or not detection_process_wanted():
         return None
     from stack.config import torch_threads
     from testbed.replay_detection import DetectionReaderProcess
 
-    processes = replay_detector_processes()
+    processes = detector_processes_setting()
     if processes is None:
         processes = 2 if dope_every <= 1 and keyframe_gate(keyframes) is None else 1
     threads = torch_threads() or (1 if processes == 2 else REPLAY_DETECTOR_THREADS.get(input_mode))

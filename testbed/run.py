@@ -170,9 +170,9 @@ def detector_processes_wanted(every: int = 1, keyframes=None) -> int:
     detected (the network is then the run's longest path: the two detect the images in turn), one
     where some go undetected (a keyframe gate, ``every`` over 1). The same bytes either way
     (docs/speed.md)."""
-    from testbed.settings import replay_detector_processes
+    from testbed.settings import detector_processes_setting
 
-    chosen = replay_detector_processes()
+    chosen = detector_processes_setting()
     if chosen is not None:
         return chosen
     return 1 if _CameraDemand.useful(every, keyframes) else 2
@@ -254,23 +254,22 @@ class _Ahead:
     every ``every``-th image (None for the rest and for other messages), exactly what the pipeline's
     own call would have found, so the pipeline's results are the same bytes either way."""
 
-    def __init__(self, messages, detector, every: int = 1, images_ahead: int = 2, process=None, keyframes=None,
+    def __init__(self, messages, detector, every: int = 1, images_ahead: int = 2, processes=(), keyframes=None,
                  odometry=None, scans_ahead: int = 4):
-        """``process``: a :class:`testbed.detection_process.DetectionProcess` that runs ``detector``'s
-        twin in a child process (then no thread; the caller closes it), or a list of them, which
-        detect the images in turn (``images_ahead`` each). ``keyframes``: the pipeline's
+        """``processes``: :class:`testbed.detection_process.DetectionProcess` objects that run
+        ``detector``'s twin in child processes and detect the images in turn (none: a thread; the
+        caller closes them). ``keyframes``: the pipeline's
         :class:`stack.keyframes.KeyframeSettings`; a gate of its own, fed the same messages in the same
         order, passes the same images as the pipeline's. ``odometry``: a
         :class:`testbed.odometry_process.OdometryProcess` whose follower is the pipeline's odometry:
         each sweep is handed to it as the simulator makes it, and its result is fed to the follower
-        before the sweep is given out (the caller closes it). At most ``images_ahead`` images and
-        ``scans_ahead`` sweeps wait ahead of the pipeline."""
+        before the sweep is given out (the caller closes it). At most ``images_ahead`` images per
+        detector process (or thread) and ``scans_ahead`` sweeps wait ahead of the pipeline."""
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
 
         self._messages, self._detector = messages, detector
-        self._processes = [] if process is None else list(process) if isinstance(process, (list, tuple)) \
-            else [process]
+        self._processes = list(processes)
         self._ahead = max(1, int(images_ahead)) * max(1, len(self._processes))
         self._scans_ahead = max(1, int(scans_ahead))
         self._submitted = 0  # images handed to the detector processes, in turn
@@ -428,16 +427,15 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     wall0 = time.perf_counter()
     lidar = getattr(getattr(config, "run", None), "lidar", None)
     closing = contextlib.ExitStack()
-    process = None
+    keyframes = None if config is None else config.detector.keyframes()
+    processes = []  # the detector's processes, where the DOPE detector runs in its own
     if in_process is not None:  # started first: it builds its network while the world is built here
         from testbed.detection_process import DetectionProcess
 
-        keyframes = None if config is None else config.detector.keyframes()
         processes = [DetectionProcess(own_kwargs, in_process, torch_threads() or 1)
                      for _ in range(detector_processes_wanted(dope_every, keyframes))]
         for p in processes:
             closing.callback(p.close)
-        process = processes[0]
     with closing, Episode(scenario, seed=seed, duration=duration, light=light, camera_rate=camera_rate,
                           segmentation=segmentation, render_worker=render_worker,
                           lidar_packets=None if lidar is None else lidar == "packets") as ep:
@@ -454,7 +452,6 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
             lc = LoopClosingRun() if config is None else \
                 LoopClosingRun(config.loop_closure.vocabulary, config.loop_closure.closure_config())
-        keyframes = None if config is None else config.detector.keyframes()
         kiss = None  # KISS-ICP in a child process, beside the simulator (odometry_process_wanted)
         if ahead_wanted and lc is None and odometry_process_wanted(odometry, dope_every, keyframes):
             from stack.pipeline import MAP_EVERY
@@ -491,8 +488,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             if _CameraDemand.useful(dope_every, keyframes) and lc is None and dyn.injector is None \
                     and not views_active():
                 ep.camera_demand = _CameraDemand(dope_every, keyframes)
-            ahead = _Ahead(dyn.messages(), detector, dope_every, process=None if process is None else processes,
-                           keyframes=keyframes, odometry=kiss)
+            ahead = _Ahead(dyn.messages(), detector, dope_every, processes=processes, keyframes=keyframes,
+                           odometry=kiss)
         stream = ((m, None, 0.0) for m in dyn.messages()) if ahead is None else ahead
         for msg, found, found_s in stream:
             simulation_s += time.perf_counter() - t_last
@@ -549,7 +546,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         T_world_odom0 = ep.T_world_base_at(result.wheel_stamps[0])
         wheel_score = score_trajectory(result.wheel_stamps, result.T_odom_base, ep, T_world_odom0)
         labels, labels_summary = score_labels(store, ep.objects, T_world_map)
-        ran = detector if process is None else process.built()  # built here, or only in the detector process
+        ran = processes[0].built() if processes else detector  # built here, or only in the detector process
         report = {
             "scenario": ep.sc.name, "seed": ep.seed, "light": ep.light, "profile": profile,
             "lidar": "packets" if ep.lidar_packets else "points",
@@ -557,7 +554,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             "input": input_mode, "stages": stages,
             "fpr": fpr, "policy": policy, "detector": detector_name(ran),
             "network_precision": getattr(ran, "precision", None), "odometry_class": detector_name(odom),
-            "odometry_process": kiss is not None, "detector_processes": 0 if process is None else len(processes),
+            "odometry_process": kiss is not None, "detector_processes": len(processes),
             "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
             "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,
             "odometry": odo, "wheel_odometry": wheel_score,

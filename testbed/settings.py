@@ -16,7 +16,7 @@ reads its two itself):
                             reads and detects the images beside the odometry, in a thread instead
                             of a child process (read by detection_process_wanted); 1: one child
                             process, 2: two, images in turn (unset: two where the detector runs on
-                            every image, else one; read by replay_detector_processes, for replay and
+                            every image, else one; read by detector_processes_setting, for replay and
                             for testbed.run)
     DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode;
                             unset: on where testbed.run runs the detector ahead, else off)
@@ -104,7 +104,7 @@ def odometry_process_wanted(environ: Mapping[str, str] | None = None) -> bool | 
     return {"0": False, "1": True}.get(value)
 
 
-def replay_detector_processes(environ: Mapping[str, str] | None = None) -> int | None:
+def detector_processes_setting(environ: Mapping[str, str] | None = None) -> int | None:
     """``DOPESLAM_DETECTOR_PROCESS`` for replay's detector side and ``testbed.run``'s detector ahead:
     ``1`` or ``2`` processes, or None (unset or anything else: the command chooses; ``0``, a thread,
     is :func:`detection_process_wanted`'s)."""

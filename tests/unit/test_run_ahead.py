@@ -82,10 +82,10 @@ def test_detection_process_setting(value, expected):
 
 @pytest.mark.parametrize("value, expected", [(None, None), ("", None), ("1", 1), (" 2 ", 2), ("0", None),
                                              ("3", None), ("yes", None)])
-def test_replay_detector_processes_setting(value, expected):
-    from testbed.settings import replay_detector_processes
+def test_detector_processes_setting(value, expected):
+    from testbed.settings import detector_processes_setting
 
-    assert replay_detector_processes({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) == expected
+    assert detector_processes_setting({} if value is None else {"DOPESLAM_DETECTOR_PROCESS": value}) == expected
 
 
 @pytest.mark.parametrize("value", [None, "1", "2", "0", "yes"])
