@@ -43,7 +43,9 @@ def rgb_png(d, stamp_ns: int, frame_id: str, rgb: np.ndarray) -> Any:
     a = np.asarray(rgb)
     if a.dtype != np.uint8 or a.ndim != 3 or a.shape[2] != 3:
         raise ValueError(f"colour image must be (H, W, 3) uint8, got {a.shape} {a.dtype}")
-    data = _encode_png(np.ascontiguousarray(a[:, :, ::-1]))
+    import cv2
+
+    data = _encode_png(cv2.cvtColor(a, cv2.COLOR_RGB2BGR))
     return d.make(COMPRESSED, header=d.header(stamp_ns, frame_id), format=RGB_FORMAT,
                   data=np.frombuffer(data, dtype=np.uint8))
 
@@ -92,9 +94,13 @@ def decode_rgb(msg: Any) -> np.ndarray:
     import cv2
 
     buf = np.asarray(msg.data, dtype=np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
-    if img is None:
-        raise ValueError(f"could not decode compressed image (format {msg.format!r})")
     fmt = str(getattr(msg, "format", "")).replace(" ", "").lower()
     swap = not ("compressedrgb8" in fmt)  # image_transport stores colour PNGs/JPEGs as bgr8 by default
-    return np.ascontiguousarray(img[:, :, ::-1] if swap else img)
+    # OpenCV >= 4.10 swaps to RGB as it decodes (the same pixels, no second pass over the image)
+    direct = swap and hasattr(cv2, "IMREAD_COLOR_RGB")
+    img = cv2.imdecode(buf, cv2.IMREAD_COLOR_RGB if direct else cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError(f"could not decode compressed image (format {msg.format!r})")
+    if direct or not swap:
+        return img
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

@@ -61,3 +61,40 @@ def test_writer_refuses_bad_images_option(tmp_path):
 
     with pytest.raises(BagWriteError, match="images"):
         BagWriter(tmp_path / "b", images="jpeg")
+
+
+def test_colour_decoding_keeps_channel_order_with_and_without_direct_rgb(monkeypatch):
+    """OpenCV >= 4.10 decodes straight to RGB; older versions decode BGR and swap: the same pixels,
+    and a PNG stored as RGB (``compressed rgb8``) is not swapped either way."""
+    import cv2
+
+    d = dialect("ros2")
+    rng = np.random.default_rng(2)
+    rgb = rng.integers(0, 256, (30, 41, 3), dtype=np.uint8)  # an odd width: no row padding assumed
+    bgr_msg = IM.rgb_png(d, 1, "cam", rgb)
+    ok, png = cv2.imencode(".png", rgb)  # the pixels as written, read back as "rgb8" without a swap
+    assert ok
+    rgb_msg = d.make(IM.COMPRESSED, header=d.header(1, "cam"), format="rgb8; png compressed rgb8",
+                     data=png.reshape(-1))
+    for msg in (bgr_msg, rgb_msg):
+        out = IM.decode_rgb(msg)
+        assert out.flags.c_contiguous and np.array_equal(out, rgb)
+    if hasattr(cv2, "IMREAD_COLOR_RGB"):
+        monkeypatch.delattr(cv2, "IMREAD_COLOR_RGB")  # an older OpenCV
+        for msg in (bgr_msg, rgb_msg):
+            out = IM.decode_rgb(msg)
+            assert out.flags.c_contiguous and np.array_equal(out, rgb)
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8", "bgra8", "mono8"])
+def test_raw_colour_encodings_become_the_same_rgb_pixels(encoding):
+    from testbed.bags.convert import colour_to_rgb
+
+    rng = np.random.default_rng(3)
+    rgba = rng.integers(0, 256, (7, 9, 4), dtype=np.uint8)
+    pixels = {"rgb8": rgba[:, :, :3], "bgr8": rgba[:, :, 2::-1], "rgba8": rgba, "bgra8": rgba[:, :, [2, 1, 0, 3]],
+              "mono8": rgba[:, :, 0]}[encoding]
+    want = np.repeat(rgba[:, :, :1], 3, axis=2) if encoding == "mono8" else rgba[:, :, :3]
+    out = colour_to_rgb(np.ascontiguousarray(pixels), encoding)
+    assert out.dtype == np.uint8 and out.shape == (7, 9, 3) and out.flags.c_contiguous
+    assert np.array_equal(out, want)
