@@ -96,11 +96,9 @@ def decode_rgb(msg: Any) -> np.ndarray:
     buf = np.asarray(msg.data, dtype=np.uint8)
     fmt = str(getattr(msg, "format", "")).replace(" ", "").lower()
     swap = not ("compressedrgb8" in fmt)  # image_transport stores colour PNGs/JPEGs as bgr8 by default
-    # OpenCV >= 4.10 swaps to RGB as it decodes (the same pixels, no second pass over the image)
+    # an OpenCV with IMREAD_COLOR_RGB swaps to RGB as it decodes (the same pixels, no second pass)
     direct = swap and hasattr(cv2, "IMREAD_COLOR_RGB")
     img = cv2.imdecode(buf, cv2.IMREAD_COLOR_RGB if direct else cv2.IMREAD_COLOR)
     if img is None:
         raise ValueError(f"could not decode compressed image (format {msg.format!r})")
-    if direct or not swap:
-        return img
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if swap and not direct else img

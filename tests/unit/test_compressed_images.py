@@ -64,7 +64,7 @@ def test_writer_refuses_bad_images_option(tmp_path):
 
 
 def test_colour_decoding_keeps_channel_order_with_and_without_direct_rgb(monkeypatch):
-    """OpenCV >= 4.10 decodes straight to RGB; older versions decode BGR and swap: the same pixels,
+    """An OpenCV with IMREAD_COLOR_RGB decodes straight to RGB; one without decodes BGR and swaps: the same pixels,
     and a PNG stored as RGB (``compressed rgb8``) is not swapped either way."""
     import cv2
 
