@@ -3,6 +3,37 @@ environment they start in and how they are stopped."""
 from __future__ import annotations
 
 import os
+import sys
+import traceback
+
+
+def child_command(module: str, function: str, *args: str) -> list[str]:
+    """The command line of a child that runs ``module.function()`` (with ``args`` in its ``sys.argv``)
+    under :func:`run_child`."""
+    code = f"from sim.child import run_child; from {module} import {function}; run_child({function})"
+    return [sys.executable, "-c", code, *args]
+
+
+def run_child(main) -> None:
+    """Run a child's ``main()``, then end the process at once: its replies are written and flushed by
+    then, and the interpreter's own clean-up (torch's, EGL's) would keep the parent waiting for a
+    third of a second or more per child. An exception is printed, and the exit status is 1."""
+    status = 0
+    try:
+        main()
+    except SystemExit as exc:  # as Python ends on it: an int is the status, anything else is printed
+        status = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        if exc.code is not None and not isinstance(exc.code, int):
+            print(exc.code, file=sys.stderr)
+    except BaseException:  # noqa: BLE001 - printed where the parent's logs go, as Python would
+        traceback.print_exc()
+        status = 1
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (AttributeError, OSError, ValueError):
+            pass
+    os._exit(status)
 
 
 def package_env() -> dict:

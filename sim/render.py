@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pybullet as p
 
-from sim.child import ChildOwner, package_env
+from sim.child import ChildOwner, child_command, package_env
 from stack.messages import CameraInfo
 
 log = logging.getLogger(__name__)
@@ -106,7 +106,6 @@ class RenderWorker(ChildOwner):
         import json
         import os
         import subprocess
-        import sys
         from multiprocessing import shared_memory
 
         self.info = info
@@ -114,7 +113,7 @@ class RenderWorker(ChildOwner):
         self._sizes = (H * W * 3, H * W * 4, H * W * 4)
         self._shm = shared_memory.SharedMemory(create=True, size=sum(self._sizes))
         reply_r, reply_w = os.pipe()
-        cmd = [sys.executable, "-c", "from sim.render import _render_worker_main; _render_worker_main()", str(reply_w)]
+        cmd = child_command("sim.render", "_render_worker_main", str(reply_w))
         self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, pass_fds=(reply_w,), env=package_env())
         os.close(reply_w)
         self._replies = os.fdopen(reply_r, "rb", buffering=0)

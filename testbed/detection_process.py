@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.child import ChildOwner, package_env
+from sim.child import ChildOwner, child_command, package_env
 from stack.messages import CameraFrame, CameraInfo, Detection
 
 
@@ -150,11 +150,11 @@ def error_json(exc: BaseException) -> dict:
 # --- the parent's side ------------------------------------------------------------------------------
 
 def start_child(module: str):
-    """``(process, reply pipe)``: ``python -c "from MODULE import _child_main; _child_main()" FD``, its
+    """``(process, reply pipe)``: ``MODULE._child_main()`` in a child Python (``sim.child.run_child``), its
     requests on its stdin, its replies on a pipe of their own (FD; nothing a library prints reaches
     it), what it prints where this process's logs go."""
     reply_r, reply_w = os.pipe()
-    cmd = [sys.executable, "-c", f"from {module} import _child_main; _child_main()", str(reply_w)]
+    cmd = child_command(module, "_child_main", str(reply_w))
     try:
         out = sys.stderr.fileno()
     except (AttributeError, OSError, ValueError):
