@@ -132,6 +132,87 @@ class DopeNet(nn.Module):
         return convs
 
 
+class FoldedDopeNet(nn.Module):
+    """A trained :class:`DopeNet` rearranged for inference: the same maps, with about a fifth fewer
+    multiply-adds (``FoldedDopeNet(net)``; ``net`` is left as it is, and the features are shared).
+
+    Each stage from the second on starts with a 7x7 convolution of the features concatenated with the
+    previous stage's maps, and those maps are a 1x1 convolution (no ReLU) of that stage's last hidden
+    layer ``h``: ``maps = W h + b``. Convolutions compose, so the 7x7 convolution of the maps is the 7x7
+    convolution of ``h`` with the kernel ``K W`` (``h`` has 32 channels at the shipped width, the maps
+    150), plus the 7x7 convolution of the constant ``b`` over the image, which zero padding makes smaller
+    near the borders (a one-channel convolution of an image of ones). The maps themselves are still
+    computed, as every stage's output. The sums are reordered, so the maps differ from
+    :class:`DopeNet`'s in the last float bits (about 2e-7 in belief).
+
+    ``forward(x, stages=None)``, :attr:`config`, :attr:`classes` and :meth:`layer_count` are
+    :class:`DopeNet`'s (the layer count is the source network's).
+    """
+
+    def __init__(self, net: DopeNet):
+        super().__init__()
+        self.config = net.config
+        self.n_belief = net.n_belief
+        self.n_affinity = net.n_affinity
+        self.n_features = net.n_features
+        self._layers = tuple(net.layer_count(s) for s in range(1, net.config.stages + 1))
+        self.features = net.features
+        f = net.n_features
+        self.hidden = nn.ModuleList()  # per stage: the layers up to its last hidden layer h
+        self.out = nn.ModuleList()  # per stage: its 1x1 output layer (h -> maps)
+        self.on_features = nn.ModuleList()  # stages 2..S: the first 7x7 convolution's feature part
+        self.on_hidden = nn.ModuleList()  # ... its part on the previous stage's h (K W, no bias)
+        self.on_bias = nn.ModuleList()  # ... the previous maps' bias through it, over an image of ones
+        for i, stage in enumerate(net.stages):
+            layers = list(stage)
+            self.out.append(layers[-1])
+            if i == 0:
+                self.hidden.append(nn.Sequential(*layers[:-1]))
+                continue
+            first, prev_out = layers[0], net.stages[i - 1][-1]
+            with torch.no_grad():
+                K = first.weight.double()
+                W = prev_out.weight.double()[:, :, 0, 0]  # (maps, h)
+                k, pad = first.kernel_size, first.padding
+                conv_f = nn.Conv2d(f, first.out_channels, k, padding=pad)
+                conv_f.weight.copy_(first.weight[:, :f])
+                conv_f.bias.copy_(first.bias)
+                conv_h = nn.Conv2d(W.shape[1], first.out_channels, k, padding=pad, bias=False)
+                conv_h.weight.copy_(torch.einsum("ocyx,cj->ojyx", K[:, f:], W).float())
+                conv_b = nn.Conv2d(1, first.out_channels, k, padding=pad, bias=False)
+                conv_b.weight.copy_(torch.einsum("ocyx,c->oyx", K[:, f:], prev_out.bias.double())[:, None].float())
+            self.on_features.append(conv_f)
+            self.on_hidden.append(conv_h)
+            self.on_bias.append(conv_b)
+            self.hidden.append(nn.Sequential(*layers[1:-1]))  # the first layer's ReLU onwards
+        self.eval()
+
+    @property
+    def classes(self) -> tuple:
+        return tuple(self.config.classes)
+
+    def layer_count(self, stages: int | None = None) -> int:
+        return self._layers[(self.config.stages if stages is None else int(stages)) - 1]
+
+    def forward(self, x: torch.Tensor, stages: int | None = None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        n = self.config.stages if stages is None else int(stages)
+        if not 1 <= n <= self.config.stages:
+            raise ValueError(f"stages must be 1..{self.config.stages}, got {n}")
+        feats = self.features(x)
+        h = self.hidden[0](feats)
+        maps = self.out[0](h)
+        outs = [(maps[:, :self.n_belief], maps[:, self.n_belief:])]
+        ones = None
+        for i in range(1, n):
+            if ones is None:
+                ones = torch.ones_like(feats[:1, :1])
+            z = self.on_features[i - 1](feats) + self.on_hidden[i - 1](h) + self.on_bias[i - 1](ones)
+            h = self.hidden[i](z)
+            maps = self.out[i](h)
+            outs.append((maps[:, :self.n_belief], maps[:, self.n_belief:]))
+        return outs
+
+
 def expand_stages(model: DopeNet, stages: int) -> DopeNet:
     """A network with ``stages`` stages whose extra stages start as copies of ``model``'s last stage.
 

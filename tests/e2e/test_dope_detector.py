@@ -102,6 +102,24 @@ def test_channels_last_gives_the_same_detections():
             assert np.abs(a.T_cam_obj[:3, 3] - b.T_cam_obj[:3, 3]).max() < 1e-4
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("input_mode", ["rgb", "depth"])
+def test_folded_stages_give_the_same_detections(input_mode):
+    """The default folded network (``fold_stages``) against the network as trained, on three rendered
+    objects: the same classes and FPR verdicts, key points within 1e-3 px, translations within 0.1 mm."""
+    found = 0
+    for cls, distance in (("E", 0.8), ("Mustard", 0.9), ("Cookies", 0.7)):
+        frame, _, dims = _render(cls, distance)
+        folded = DopeDetector(input=input_mode, stages=6, fpr=True, dims=dims).detect(frame)
+        plain = DopeDetector(input=input_mode, stages=6, fpr=True, dims=dims, fold_stages=False).detect(frame)
+        found += len(folded)
+        assert [(d.cls, d.fpr_pass) for d in folded] == [(d.cls, d.fpr_pass) for d in plain]
+        for a, b in zip(folded, plain):
+            assert np.abs(a.keypoints_px - b.keypoints_px).max() < 1e-3
+            assert np.abs(a.T_cam_obj[:3, 3] - b.T_cam_obj[:3, 3]).max() < 1e-4
+    assert found >= 2, "too few detections to compare"
+
+
 @pytest.mark.parametrize("input_mode", ["rgb", "depth"])
 def test_the_detector_process_gives_the_same_detections(input_mode):
     """``dopeslam run``'s detector in a child process (testbed.detection_process) against the same

@@ -1,8 +1,10 @@
-"""The DOPE network: output shapes per stage count, layer counts, weights round trip."""
+"""The DOPE network: output shapes per stage count, layer counts, weights round trip, and its folded
+form for inference (the same maps)."""
 import pytest
 import torch
 
-from stack.dope.net import N_AFFINITY, N_BELIEF, DopeNet, DopeNetConfig, load_weights, read_weights, save_weights
+from stack.dope.net import (N_AFFINITY, N_BELIEF, DopeNet, DopeNetConfig, FoldedDopeNet, load_weights, read_weights,
+                            save_weights)
 
 
 @pytest.fixture(scope="module")
@@ -115,3 +117,52 @@ def test_expand_stages_repeats_the_last_stage():
     with torch.no_grad():
         a, b = short(x), long(x)
     assert torch.allclose(a[1][0], b[1][0]) and len(b) == 4
+
+
+def _randomised(net: DopeNet) -> DopeNet:
+    """``net`` with every bias drawn too (a fresh network's are small): the folded border term must show."""
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, torch.nn.Conv2d) and m.bias is not None:
+                m.bias.copy_(torch.randn(m.bias.shape, generator=g) * 0.5)
+    return net
+
+
+@pytest.mark.parametrize("in_channels, size", [(3, (48, 64)), (1, (40, 56))])
+def test_the_folded_network_gives_the_same_maps_at_every_stage(in_channels, size):
+    torch.manual_seed(2)
+    net = _randomised(DopeNet(DopeNetConfig(width=0.125, stages=4, in_channels=in_channels)).eval())
+    folded = FoldedDopeNet(net)
+    x = torch.randn(2, in_channels, *size)
+    with torch.no_grad():
+        for stages in (1, 2, 4):
+            want, got = net(x, stages), folded(x, stages)
+            assert len(got) == stages
+            for (bw, aw), (bg, ag) in zip(want, got):
+                assert bg.shape == bw.shape and ag.shape == aw.shape
+                scale = max(bw.abs().max().item(), aw.abs().max().item())
+                assert (bg - bw).abs().max().item() < 1e-5 * scale
+                assert (ag - aw).abs().max().item() < 1e-5 * scale
+    # stage 1 takes no folded layer: bit for bit
+    with torch.no_grad():
+        assert torch.equal(net(x, 1)[0][0], folded(x, 1)[0][0])
+    assert folded.classes == net.classes and folded.config is net.config
+    assert [folded.layer_count(s) for s in (1, 4)] == [net.layer_count(s) for s in (1, 4)]
+    with pytest.raises(ValueError, match="stages must be 1..4"):
+        folded(x, 5)
+
+
+def test_the_folded_network_follows_the_source_layers_it_folds():
+    """The folded weights are the source's, composed: changing the source network after folding changes
+    nothing, and a different second-stage kernel gives different maps (the fold is not a copy of one)."""
+    torch.manual_seed(3)
+    net = _randomised(DopeNet(DopeNetConfig(width=0.125, stages=2)).eval())
+    x = torch.randn(1, 3, 32, 32)
+    folded = FoldedDopeNet(net)
+    with torch.no_grad():
+        before = folded(x)[1][0].clone()
+        net.stages[1][0].weight.mul_(2.0)
+        other = FoldedDopeNet(net)(x)[1][0]
+    assert torch.equal(folded(x)[1][0], before)
+    assert not torch.allclose(other, before)
