@@ -6,7 +6,7 @@ and run through the DOPE network (all stages) by every backend, interleaved roun
 load of the machine falls on all of them alike. Reported per backend and thread count:
 
 - ms per image: process CPU time of one forward pass (the network only), best and median of ``--repeats``;
-- the largest absolute difference from torch (no_grad, as the detector runs) of the belief maps and of
+- the largest absolute difference from torch (no_grad, the network as trained) of the belief maps and of
   the affinity fields, over every stage and every frame;
 - whether ``DopeDetector.detect_stages`` (stage counts 1..S: peaks, association, PnP, depth fit, FPR,
   colour check) decodes the same detections from that backend's maps on every frame: same classes,
@@ -16,10 +16,13 @@ load of the machine falls on all of them alike. Reported per backend and thread 
 
 Backends:
 
-- ``torch``: eager, ``torch.no_grad``, as the detector runs;
-- ``torch channels-last``: ``inference_mode``, weights and input channels-last (the detector's default);
-- ``torch channels-last bf16``: as ``DopeDetector(precision="bf16")`` runs it, weights and input in
-  bfloat16; only on a CPU with native bfloat16 (AVX512-BF16 or AMX);
+- ``torch``: eager, ``torch.no_grad``, the network as trained (``DopeDetector(fold_stages=False,
+  channels_last=False)``);
+- ``torch channels-last``: ``inference_mode``, weights and input channels-last;
+- ``torch channels-last folded``: the same with the refinement stages folded
+  (``stack.dope.net.FoldedDopeNet``): as the detector runs it by default;
+- ``torch channels-last bf16``: as ``DopeDetector(precision="bf16")`` runs it (folded), weights and input
+  in bfloat16; only on a CPU with native bfloat16 (AVX512-BF16 or AMX);
 - ``onnxruntime``: the network exported with ``torch.onnx.export(..., dynamo=False)`` (opset 17, batch,
   height and width free) to a temporary folder and run by ONNX Runtime's CPUExecutionProvider, every graph
   optimisation on, idle threads sleeping; ``onnxruntime spin`` lets them spin-wait (ONNX Runtime's
@@ -169,6 +172,7 @@ def main(argv=None) -> int:
     except ModuleNotFoundError as exc:
         ort_version = None
         notes.append(f"onnxruntime skipped: {exc.name} is not installed (pip install onnxruntime onnx)")
+    from stack.dope.net import FoldedDopeNet
     from stack.dope_fpr import DopeDetector, bf16_native
     from stack.messages import CameraFrame
 
@@ -176,7 +180,7 @@ def main(argv=None) -> int:
     raw, dims = render_frames(args.frames)
     frames = [CameraFrame(0.1 * i, info, rgb=rgb, depth_m=depth) for i, (info, rgb, depth) in enumerate(raw)]
     det = DopeDetector(weights=args.weights, input=args.input, stages=args.stages, dims=dims, threads=1,
-                       precision="fp32")  # the reference: fp32 (bf16 is a backend below)
+                       precision="fp32", fold_stages=False, channels_last=False)  # the reference: as trained
     model, S = det.model, args.stages
     inputs = [det._inputs(f)[0] for f in frames]
     inputs = [x for x in inputs if len(x)]
@@ -194,7 +198,14 @@ def main(argv=None) -> int:
         xt = torch.from_numpy(x).contiguous(memory_format=torch.channels_last)
         return [(b.numpy(), a.numpy()) for b, a in model_cl(xt, S)]
 
-    model_bf16 = copy.deepcopy(model_cl).to(torch.bfloat16)
+    model_folded = FoldedDopeNet(copy.deepcopy(model)).to(memory_format=torch.channels_last)
+
+    @torch.inference_mode()
+    def folded_fn(x):  # as DopeDetector runs it by default
+        xt = torch.from_numpy(x).contiguous(memory_format=torch.channels_last)
+        return [(b.numpy(), a.numpy()) for b, a in model_folded(xt, S)]
+
+    model_bf16 = copy.deepcopy(model_folded).to(torch.bfloat16)
 
     @torch.inference_mode()
     def bf16_fn(x):  # as DopeDetector(precision="bf16") runs it
@@ -210,6 +221,7 @@ def main(argv=None) -> int:
     for th in threads:
         backends.append(("torch", th, torch_fn, 0.0))
         backends.append(("torch channels-last", th, channels_last_fn, 0.0))
+        backends.append(("torch channels-last folded", th, folded_fn, 0.0))
         if bf16_native():
             backends.append(("torch channels-last bf16", th, bf16_fn, 0.0))
         for spin in ((False, True) if th > 1 else (False,)) if ort_version else ():
