@@ -194,6 +194,9 @@ def main(argv: list[str] | None = None) -> int:
     from testbed import progress
 
     progress.configure(quiet=getattr(args, "quiet", False))
+    from sim.child import reuse_freed_memory
+
+    reuse_freed_memory()  # this process and the ones it starts: docs/speed.md, "Freed memory kept for reuse"
     try:
         check_scenario_args(args)
         if not getattr(args, "json", False):

@@ -1,5 +1,7 @@
 """How the package's child processes start and end (``sim.child``): what a child prints is not lost to
-its quick exit, an error ends it with status 1 and its traceback, ``SystemExit`` keeps its status."""
+its quick exit, an error ends it with status 1 and its traceback, ``SystemExit`` keeps its status; the
+memory settings a process applies reach the children it starts, and a user's own settings win."""
+import os
 import subprocess
 import sys
 import textwrap
@@ -48,3 +50,31 @@ def test_system_exit_keeps_its_status(tmp_path):
 def test_the_command_runs_this_interpreter():
     cmd = child_command("sim.render", "_render_worker_main", "7")
     assert cmd[0] == sys.executable and cmd[-1] == "7"
+
+
+def _settings_run(code: str, **extra_env) -> str:
+    env = {k: v for k, v in package_env().items() if not k.startswith("MALLOC_")}
+    env.update(extra_env)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60,
+                          check=True).stdout.strip()
+
+
+def test_memory_settings_apply_once_and_reach_the_children():
+    if not os.confstr("CS_GNU_LIBC_VERSION"):
+        import pytest
+
+        pytest.skip("not glibc: the settings are glibc's")
+    code = ("import os, subprocess, sys; from sim.child import reuse_freed_memory; "
+            "print(reuse_freed_memory(), reuse_freed_memory()); "
+            "print(subprocess.run([sys.executable, '-c', 'import os; print(os.environ.get(\"MALLOC_TOP_PAD_\"))'], "
+            "capture_output=True, text=True).stdout.strip())")
+    first, child = _settings_run(code).splitlines()
+    assert first == "True False"  # applied, then already in place
+    assert child == str(64 << 20)
+
+
+def test_a_users_own_memory_setting_is_left_alone():
+    code = ("import os; from sim.child import reuse_freed_memory; print(reuse_freed_memory()); "
+            "print(os.environ.get('MALLOC_TOP_PAD_'), os.environ.get('MALLOC_MMAP_THRESHOLD_'))")
+    applied, values = _settings_run(code, MALLOC_TOP_PAD_="4096").splitlines()
+    assert applied == "False" and values == "4096 None"
