@@ -32,10 +32,9 @@ def reuse_freed_memory() -> bool:
     except (AttributeError, OSError, ValueError):  # not glibc, or no confstr name for it
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    for name, (param, value) in _MALLOC_SETTINGS.items():
-        if not mallopt(param, value):
-            return False
-        os.environ[name] = str(value)
+    if not all([mallopt(param, value) for param, value in _MALLOC_SETTINGS.values()]):
+        return False
+    os.environ.update({name: str(value) for name, (_, value) in _MALLOC_SETTINGS.items()})  # the children's
     return True
 
 

@@ -63,6 +63,14 @@ def _conv(cin: int, cout: int, k: int, relu: bool = True) -> list[nn.Module]:
     return layers
 
 
+def _stage_count(config: DopeNetConfig, stages: int | None) -> int:
+    """The number of stages a forward pass evaluates (None: all); outside 1..``config.stages``: ValueError."""
+    n = config.stages if stages is None else int(stages)
+    if not 1 <= n <= config.stages:
+        raise ValueError(f"stages must be 1..{config.stages}, got {n}")
+    return n
+
+
 class DopeNet(nn.Module):
     """Shared-trunk DOPE for ``len(config.classes)`` classes.
 
@@ -111,9 +119,7 @@ class DopeNet(nn.Module):
         return tuple(self.config.classes)
 
     def forward(self, x: torch.Tensor, stages: int | None = None) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        n = self.config.stages if stages is None else int(stages)
-        if not 1 <= n <= self.config.stages:
-            raise ValueError(f"stages must be 1..{self.config.stages}, got {n}")
+        n = _stage_count(self.config, stages)
         feats = self.features(x)
         outs = []
         prev = None
@@ -195,17 +201,13 @@ class FoldedDopeNet(nn.Module):
         return self._layers[(self.config.stages if stages is None else int(stages)) - 1]
 
     def forward(self, x: torch.Tensor, stages: int | None = None) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        n = self.config.stages if stages is None else int(stages)
-        if not 1 <= n <= self.config.stages:
-            raise ValueError(f"stages must be 1..{self.config.stages}, got {n}")
+        n = _stage_count(self.config, stages)
         feats = self.features(x)
         h = self.hidden[0](feats)
         maps = self.out[0](h)
         outs = [(maps[:, :self.n_belief], maps[:, self.n_belief:])]
-        ones = None
+        ones = torch.ones_like(feats[:1, :1])  # the image the previous maps' bias is convolved over
         for i in range(1, n):
-            if ones is None:
-                ones = torch.ones_like(feats[:1, :1])
             z = self.on_features[i - 1](feats) + self.on_hidden[i - 1](h) + self.on_bias[i - 1](ones)
             h = self.hidden[i](z)
             maps = self.out[i](h)
