@@ -7,6 +7,7 @@ physics and the camera overlap. The sensor model (the D435i's noise, ``render_rg
 from __future__ import annotations
 
 import logging
+import os
 import pkgutil
 
 import cv2
@@ -18,6 +19,18 @@ from stack.messages import CameraInfo
 
 log = logging.getLogger(__name__)
 NEAR, FAR = 0.05, 30.0
+RASTERISER_THREADS = "LP_NUM_THREADS"  # Mesa llvmpipe's own variable: its rasteriser threads (0: none)
+
+
+def rasterise_in_the_calling_thread(env: dict) -> dict:
+    """``env`` (a child's environment, changed in place and returned) with Mesa's software rasteriser
+    (llvmpipe, behind PyBullet's EGL plugin) drawing in the thread that asks for the image instead of
+    handing tiles to threads of its own. For the render processes: they share the cores with processes
+    as busy as they are (the simulator, the stack, the network, another render process), where those
+    threads cost about a sixth more CPU per frame for nothing (``benchmarks/bench_render_threads.py``).
+    The images are the same bytes. A user's own ``LP_NUM_THREADS`` is kept."""
+    env.setdefault(RASTERISER_THREADS, "0")
+    return env
 
 
 def new_client(renderer: str = "auto") -> tuple[int, int]:
@@ -83,8 +96,6 @@ def render_raw(client: int, T_world_cam: np.ndarray, info: CameraInfo, renderer:
 def render_worker_wanted(default: bool) -> bool:
     """Whether to render in a second process: ``DOPESLAM_RENDER_WORKER`` (``1`` or ``0``) when it is
     set, else ``default`` (the caller's choice for its own loop)."""
-    import os
-
     value = os.environ.get("DOPESLAM_RENDER_WORKER", "").strip()
     return value == "1" if value else bool(default)
 
@@ -104,7 +115,6 @@ class RenderWorker(ChildOwner):
 
     def __init__(self, scenario, info: CameraInfo, renderer: str = "auto", segmentation: bool = True):
         import json
-        import os
         import subprocess
         from multiprocessing import shared_memory
 
@@ -114,7 +124,8 @@ class RenderWorker(ChildOwner):
         self._shm = shared_memory.SharedMemory(create=True, size=sum(self._sizes))
         reply_r, reply_w = os.pipe()
         cmd = child_command("sim.render", "_render_worker_main", str(reply_w))
-        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, pass_fds=(reply_w,), env=package_env())
+        self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, pass_fds=(reply_w,),
+                                      env=rasterise_in_the_calling_thread(package_env()))
         os.close(reply_w)
         self._replies = os.fdopen(reply_r, "rb", buffering=0)
         setup = {"scenario": scenario.model_dump(mode="json", by_alias=True), "width": W, "height": H,
@@ -170,7 +181,6 @@ def _views(buf, info: CameraInfo, copy: bool):
 def _render_worker_main() -> None:
     """The child process of ``RenderWorker``: build the world, then render each request."""
     import json
-    import os
     import sys
     import time
     from multiprocessing import resource_tracker, shared_memory

@@ -1,10 +1,12 @@
 """The simulated D435i: geometry of the rendered image, the depth noise model, darkness."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from sim.camera import DepthNoise, render_rgbd
+from sim.camera import DepthNoise, default_camera_info, render_rgbd
 from sim.episode import Episode
 from sim.scenario import load_scenario
 from stack.messages import CameraFrame
@@ -128,3 +130,76 @@ def test_darkness_blacks_out_rgb_but_leaves_depth_unchanged():
     assert lit_valid > 0.5
     assert dark_valid == lit_valid
     np.testing.assert_array_equal(dark.depth_m, lit.depth_m)  # the active projector does not need light
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="reads a child's environment from /proc")
+def test_render_processes_rasterise_in_the_calling_thread_unless_the_user_says(monkeypatch):
+    """A render process is started with ``LP_NUM_THREADS=0`` (Mesa's rasteriser without threads of its
+    own), unless the user set the variable; this process's own environment is left as it is."""
+    import os
+
+    from sim.render import RASTERISER_THREADS, RenderWorker, rasterise_in_the_calling_thread
+    from sim.scenario import load_scenario
+
+    assert RASTERISER_THREADS == "LP_NUM_THREADS"
+    assert rasterise_in_the_calling_thread({"A": "1"}) == {"A": "1", RASTERISER_THREADS: "0"}
+    assert rasterise_in_the_calling_thread({RASTERISER_THREADS: "3"}) == {RASTERISER_THREADS: "3"}
+
+    def child_setting():
+        sc = load_scenario(None)
+        worker = RenderWorker(sc, default_camera_info())
+        try:
+            environ = open(f"/proc/{worker._proc.pid}/environ", "rb").read().split(b"\0")
+        finally:
+            worker.close()
+        return [e.split(b"=", 1)[1].decode() for e in environ if e.startswith(RASTERISER_THREADS.encode() + b"=")]
+
+    monkeypatch.delenv(RASTERISER_THREADS, raising=False)
+    assert child_setting() == ["0"] and RASTERISER_THREADS not in os.environ
+    monkeypatch.setenv(RASTERISER_THREADS, "2")
+    assert child_setting() == ["2"]
+
+
+_RENDER_HASH = """
+import hashlib, numpy as np, pybullet as p
+from sim.camera import default_camera_info, render_rgbd
+from sim.objects import load_catalog, spawn_object
+from sim.render import new_client
+client, flag = new_client("auto")
+if flag != p.ER_BULLET_HARDWARE_OPENGL:
+    print("sha256 no-egl"); raise SystemExit(0)
+cat = load_catalog()
+floor = p.createVisualShape(p.GEOM_BOX, halfExtents=[5, 5, 0.05], rgbaColor=[0.6, 0.6, 0.55, 1], physicsClientId=client)
+p.createMultiBody(0, -1, floor, [0, 0, -0.05], physicsClientId=client)
+for i, (cls, x, y) in enumerate((("E", 0.8, 0.0), ("Mustard", 1.1, 0.3))):
+    spawn_object(client, cat[cls], cat[cls].standing_pose([x, y, 0.0], np.pi + 0.3 * i))
+T = np.eye(4)
+T[:3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)
+h = hashlib.sha256()
+rng = np.random.default_rng(0)
+for i in range(3):
+    T[:3, 3] = [0.02 * i, 0.01 * i, 0.3]
+    for a in render_rgbd(client, T, default_camera_info(), renderer=flag, rng=rng):
+        h.update(np.ascontiguousarray(a).tobytes())
+print("sha256", h.hexdigest())
+"""
+
+
+def test_the_rasteriser_threads_change_no_pixel():
+    """Colour, depth and segmentation from EGL are the same bytes drawn in the calling thread (this
+    project's default) and with the rasteriser's own threads."""
+    import os
+    import subprocess
+    import sys
+
+    def digest(value):
+        env = dict(os.environ, LP_NUM_THREADS=value)
+        out = subprocess.run([sys.executable, "-c", _RENDER_HASH], env=env, capture_output=True, text=True,
+                             timeout=120, check=True)
+        return [line.split()[1] for line in out.stdout.splitlines() if line.startswith("sha256 ")][0]
+
+    single = digest("0")
+    if single == "no-egl":
+        pytest.skip("the EGL renderer does not load here (TinyRenderer has no rasteriser threads)")
+    assert len(single) == 64
+    assert digest("2") == single
