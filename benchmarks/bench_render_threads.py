@@ -69,10 +69,11 @@ def measure(threads: str, duration: float, warmup: int) -> dict:
     env = dict(os.environ, LP_NUM_THREADS=threads, DOPESLAM_RENDER_WORKER="0")
     code = (f"import sys; sys.path.insert(0, {str(ROOT)!r}); sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); "
             f"from bench_render_threads import child; child({duration!r}, {warmup!r})")
-    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True, check=True)
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True)
     lines = [line[len(MARK):] for line in out.stdout.splitlines() if line.startswith(MARK)]
-    if not lines:
-        raise SystemExit(f"no result from the render process (LP_NUM_THREADS={threads}):\n{out.stderr[-2000:]}")
+    if out.returncode != 0 or not lines:
+        raise SystemExit(f"bench_render_threads: the render process (LP_NUM_THREADS={threads}) failed with exit "
+                         f"status {out.returncode}; its last output:\n{out.stderr[-2000:]}")
     return json.loads(lines[-1])
 
 
