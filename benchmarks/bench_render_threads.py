@@ -119,14 +119,17 @@ def main(argv=None) -> int:
             eta = (time.perf_counter() - t0) / done * (total - done)
             print(f"  round {i + 1}/{args.rounds}, LP_NUM_THREADS={v}: {rows[v][-1]['cpu_ms']:.1f} CPU ms per frame "
                   f"(ETA {eta:.0f} s)", file=sys.stderr, flush=True)
-    renderer = next(iter(rows.values()))[0]["renderer"]
-    if renderer != 131072:  # p.ER_BULLET_HARDWARE_OPENGL
+    import pybullet as p
+
+    if next(iter(rows.values()))[0]["renderer"] != p.ER_BULLET_HARDWARE_OPENGL:
         print("note: the EGL renderer did not load here; TinyRenderer has no rasteriser threads")
     print(f"default scenario, seed 0, {args.duration:g} simulated s per process, {args.rounds} rounds alternating; "
           f"load average {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
     print(table(rows))
     if args.json:
-        Path(args.json).write_text(json.dumps({"args": vars(args), "rows": rows}, indent=2))
+        from stack.io import write_json
+
+        write_json(args.json, {"args": vars(args), "rows": rows})
     return 0
 
 
