@@ -83,7 +83,9 @@ def main(argv=None) -> int:
                   f"CPU {rows[name][-1][1]:.1f} s", file=sys.stderr)
     k_wall = statistics.median(w for w, _ in rows["kiss_icp_pipeline"])
     k_cpu = statistics.median(c for _, c in rows["kiss_icp_pipeline"])
-    print(f"\nbag: {bag} ({sum(f.stat().st_size for f in bag.rglob('*') if f.is_file()) / 1e6:.0f} MB); "
+    from testbed.bags.writer import bag_size
+
+    print(f"\nbag: {bag} ({bag_size(bag) / 1e6:.0f} MB); "
           f"load average at the end: {' '.join(os.getloadavg().__repr__().strip('()').split(', '))}\n")
     print("| command | wall s (median) | CPU s (median) | wall / kiss_icp_pipeline (target <= 1.5) | CPU / kiss_icp_pipeline |")
     print("|---|---:|---:|---:|---:|")

@@ -18,11 +18,15 @@ The floors, measured on the same machine and the same data:
   with and without the segmentation mask, times the camera rate; beside it, the same call at 16x12
   pixels: what a frame costs whatever its size (PyBullet's EGL renderer draws a 4096x4096 shadow map
   before every image, and a DIRECT client cannot switch it off);
-- DOPE network: its FLOPs (``torch.utils.flop_counter``) per image at this CPU's measured matmul
-  GFLOP/s in the network's precision (a 1024^3 ``torch.mm`` in fp32, or bf16 where the detector runs
-  bf16, with the same torch threads), times the images per second;
-- odometry: KISS-ICP's own ``KissICP.register_frame`` on the same sweeps (the points the simulator
-  gave), times the sweep rate.
+- DOPE network: its FLOPs (``torch.utils.flop_counter``) per image at the faster of two GFLOP/s
+  measured on this CPU in the network's precision with the same torch threads: a 1024^3 ``torch.mm``
+  (fp32, or bf16 where the detector runs bf16) and the network's fastest convolution run alone on its
+  own input (the convolution library can be twice as fast as the matmul library on the same CPU),
+  times the images per second;
+- odometry: KISS-ICP's own voxelisation, alignment and map update as the stack's odometry calls them,
+  on the points it registers (deskewed, cropped, the floor left out: the floor fit holds height, roll
+  and pitch); beside it, ``KissICP.register_frame`` on the same whole sweeps (the points the simulator
+  gave) without and with its deskew, times the sweep rate.
 
     python benchmarks/bench_stages.py [--scenario NAME] [--duration S] [--seed N] [--profile full|fast]
         [--precision fp32|bf16] [--set KEY=VALUE ...]
@@ -75,6 +79,38 @@ class Meter:
         setattr(owner, name, timed)
 
 
+def kiss_core_timer():
+    """Wraps KISS-ICP's own voxelisation, alignment and map update (wherever they are called from) to add
+    their CPU seconds to the returned dict's ``"seconds"``; ``restore()`` puts them back. Inside the
+    stack's odometry they run on exactly the points the stack registers (deskewed, cropped, the floor
+    left out): that is the odometry stage's floor."""
+    from kiss_icp.kiss_icp import KissICP
+    from kiss_icp.mapping import VoxelHashMap
+    from kiss_icp.registration import Registration
+
+    acc = {"seconds": 0.0}
+    wrapped = [(KissICP, "voxelize"), (Registration, "align_points_to_map"), (VoxelHashMap, "update")]
+    for owner, name in wrapped:
+        fn = getattr(owner, name)
+
+        def timed(*a, _fn=fn, **k):
+            t0 = time.process_time()
+            try:
+                return _fn(*a, **k)
+            finally:
+                acc["seconds"] += time.process_time() - t0
+
+        timed.__wrapped__ = fn
+        setattr(owner, name, timed)
+
+    def restore():
+        for owner, name in wrapped:
+            setattr(owner, name, getattr(owner, name).__wrapped__)
+
+    acc["restore"] = restore
+    return acc
+
+
 def matmul_gflops(n: int = 1024, repeats: int = 5, precision: str = "fp32") -> float:
     """Best GFLOP/s of an n^3 matrix product (``precision`` fp32 or bf16) with torch's current thread
     count (CPU time)."""
@@ -89,6 +125,47 @@ def matmul_gflops(n: int = 1024, repeats: int = 5, precision: str = "fp32") -> f
         torch.mm(a, b)
         best = min(best, time.process_time() - t0)
     return 2.0 * n ** 3 / max(best, 1e-9) / 1e9
+
+
+def conv_gflops(detector, repeats: int = 3) -> tuple[float, str]:
+    """Best GFLOP/s (CPU time) of any one convolution of the detector's network run alone, on the very
+    input it gets in one forward pass (the detector's precision and memory order, torch's current thread
+    count), and that layer's shape: the rate the CPU's convolution kernels reach on this network's
+    layers at their best. A CPU's matmul library and its convolution library can differ by 2x (on
+    AVX-512 machines whose matmul path is tuned for AVX2), so the network's floor takes the faster."""
+    import numpy as np
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    seen = {}
+
+    def hook(mod, inputs, _out):
+        x = inputs[0]
+        key = (mod.in_channels, mod.out_channels, mod.kernel_size, mod.stride, tuple(x.shape))
+        seen.setdefault(key, (mod, x.detach().clone(memory_format=torch.preserve_format)))
+
+    hooks = [m.register_forward_hook(hook) for m in detector.model.modules() if isinstance(m, torch.nn.Conv2d)]
+    try:
+        w, h = detector.input_size
+        detector._forward(np.zeros((1, 3, h, w), dtype=np.float32), detector.stages, last_only=True)
+    finally:
+        for hk in hooks:
+            hk.remove()
+    best_rate, best_shape = 0.0, "-"
+    with torch.inference_mode():
+        for (cin, cout, k, _stride, shape), (mod, x) in seen.items():
+            with FlopCounterMode(display=False) as fc:
+                mod(x)
+            flops = fc.get_total_flops()
+            best = float("inf")
+            for _ in range(repeats):
+                t0 = time.process_time()
+                mod(x)
+                best = min(best, time.process_time() - t0)
+            rate = flops / max(best, 1e-9) / 1e9
+            if rate > best_rate:
+                best_rate, best_shape = rate, f"{k[0]}x{k[1]} conv {cin}->{cout} at {shape[-1]}x{shape[-2]}"
+    return best_rate, best_shape
 
 
 def network_flops(detector) -> int:
@@ -178,6 +255,7 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
         return orig_detect(self, frame)
 
     Episode.close, LidarOdometry.process, DopeDetector.detect = close, process, detect
+    kiss_core = kiss_core_timer()
     try:
         with tempfile.TemporaryDirectory() as tmp:
             w0, c0 = time.perf_counter(), time.process_time()
@@ -192,6 +270,7 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
                             sequential=True, config=config)  # one stage at a time: the meter's CPU deltas are each stage's own
             cpu, wall = time.process_time() - c0, time.perf_counter() - w0
     finally:
+        kiss_core["restore"]()
         Episode.close, LidarOdometry.process, DopeDetector.detect = orig_close, orig_process, orig_detect
         for owner, name in ((Episode, "_camera_frame"), (Episode, "_lidar_scan"), (LidarOdometry, "process"),
                             (DopeDetector, "_forward"), (DopeDetector, "detect"), (DopeSlam, "_fuse_image")):
@@ -208,14 +287,21 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
     if det is not None:
         flops = network_flops(det)
         precision = getattr(det, "precision", "fp32")
-        gflops = matmul_gflops(precision=precision)
+        mm = matmul_gflops(precision=precision)
+        conv, conv_shape = conv_gflops(det)
+        gflops = max(mm, conv)
         floors["network"] = flops / (gflops * 1e9) * len(frames) / sim_s
     else:
-        flops = gflops = precision = None
+        flops = gflops = precision = mm = conv = conv_shape = None
     if scans:
-        floors["odometry"] = kiss_floor(scans, handles["odom_config"]) * len(scans) / sim_s
+        cfg = handles["odom_config"]
+        per_s = len(scans) / sim_s
+        floors["odometry"] = (kiss_core["seconds"] / sim_s,
+                              kiss_floor(scans, cfg.model_copy(update={"deskew": False})) * per_s,
+                              kiss_floor(scans, cfg) * per_s)
     return {"sim_s": sim_s, "wall_s": wall, "cpu_s": cpu, "stages": meter.cpu, "calls": meter.calls, "profile": profile,
-            "floors": floors, "flops": flops, "gflops": gflops, "precision": precision, "images": len(frames), "scans": len(scans),
+            "floors": floors, "flops": flops, "gflops": gflops, "matmul_gflops": mm, "conv_gflops": conv,
+            "conv_shape": conv_shape, "precision": precision, "images": len(frames), "scans": len(scans),
             "labels": r["labels_summary"]}
 
 
@@ -227,15 +313,20 @@ def table(m: dict) -> str:
     how = {"rendering": ("getCameraImage alone, with segmentation (without: {:.3f}" if m.get("profile", "full") == "full"
                          else "getCameraImage alone, without segmentation ({:.3f}")
            + "; {:.3f} of it at any image size: 16x12 pixels cost that)",
-           "network": "{flops:.2f} GFLOP per image at {gf:.1f} GFLOP/s ({prec} matmul)",
-           "odometry": "KissICP.register_frame on the same sweeps"}
+           "network": "{flops:.2f} GFLOP per image at {gf:.1f} GFLOP/s, the faster of {prec} matmul ({mm:.1f}) "
+                      "and the network's fastest convolution alone ({conv:.1f}: {shape})",
+           "odometry": "KISS-ICP's own voxelize, align and map update on the points the stack registers (the "
+                       "floor left out); KissICP.register_frame on the same whole sweeps: {:.3f} without its "
+                       "deskew, {:.3f} with"}
     for st in STAGES:
         v = m["stages"][st] / sim
         f = fl.get(st)
         if isinstance(f, tuple):
             note, f = how[st].format(*f[1:]), f[0]
         elif f is not None:
-            note = how[st].format(flops=(m["flops"] or 0) / 1e9, gf=m["gflops"] or 0, prec=m.get("precision") or "fp32")
+            note = how[st].format(flops=(m["flops"] or 0) / 1e9, gf=m["gflops"] or 0, prec=m.get("precision") or "fp32",
+                                  mm=m.get("matmul_gflops") or 0, conv=m.get("conv_gflops") or 0,
+                                  shape=m.get("conv_shape") or "-")
         else:
             note = "-"
         fs = "-" if f is None else f"{f:.3f}"

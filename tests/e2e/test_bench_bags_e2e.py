@@ -38,6 +38,14 @@ def test_bag_floor_colour_entropy_from_the_model():
 
 
 def test_odometry_replay_prints_the_table(capsys, tmp_path):
-    assert _load("bench_odometry_replay").main(["--duration", "2", "--repeats", "1", "--keep", str(tmp_path)]) == 0
+    """On a ROS 1 bag file given with ``--bag``: both commands run on it, and its size is the file's."""
+    import re
+
+    from testbed.record import record_episode
+
+    bag = tmp_path / "drive.bag"
+    record_episode(None, bag, seed=0, duration=2.0)
+    assert _load("bench_odometry_replay").main(["--bag", str(bag), "--repeats", "1", "--keep", str(tmp_path / "w")]) == 0
     out = capsys.readouterr().out
     assert "| kiss_icp_pipeline |" in out and "| dopeslam replay --odometry-only |" in out
+    assert int(re.search(r"\((\d+) MB\)", out).group(1)) == round(bag.stat().st_size / 1e6)
