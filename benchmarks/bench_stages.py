@@ -22,7 +22,7 @@ The floors, measured on the same machine and the same data:
   measured on this CPU in the network's precision with the same torch threads: a 1024^3 ``torch.mm``
   (fp32, or bf16 where the detector runs bf16) and the network's fastest convolution run alone on its
   own input (the convolution library can be twice as fast as the matmul library on the same CPU),
-  times the images per second;
+  times the network's inputs per second (one per image; with depth input, one per depth window);
 - odometry: KISS-ICP's own voxelisation, alignment and map update as the stack's odometry calls them,
   on the points it registers (deskewed, cropped, the floor left out: the floor fit holds height, roll
   and pitch); beside it, ``KissICP.register_frame`` on the same whole sweeps (the points the simulator
@@ -225,7 +225,14 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
     from testbed.run import run_episode
 
     meter = Meter()
-    scans, frames, handles = [], [], {}
+    scans, frames, handles, inputs = [], [], {}, []
+    orig_forward = DopeDetector._forward
+
+    def forward(self, x, *a, **k):  # the network's inputs: one per image, or a few depth windows per image
+        inputs.append(len(x))
+        return orig_forward(self, x, *a, **k)
+
+    DopeDetector._forward = forward
     meter.wrap(Episode, "_camera_frame", "rendering")
     meter.wrap(Episode, "_lidar_scan", "lidar")
     meter.wrap(LidarOdometry, "process", "odometry")
@@ -275,6 +282,7 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
         for owner, name in ((Episode, "_camera_frame"), (Episode, "_lidar_scan"), (LidarOdometry, "process"),
                             (DopeDetector, "_forward"), (DopeDetector, "detect"), (DopeSlam, "_fuse_image")):
             setattr(owner, name, getattr(owner, name).__wrapped__)
+        DopeDetector._forward = orig_forward
     sim_s = float(r["sim_seconds"])
     meter.cpu["simulation"] = cpu - sum(v for k, v in meter.cpu.items() if k != "simulation")
     det = handles.get("detector")
@@ -290,7 +298,7 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
         mm = matmul_gflops(precision=precision)
         conv, conv_shape = conv_gflops(det)
         gflops = max(mm, conv)
-        floors["network"] = flops / (gflops * 1e9) * len(frames) / sim_s
+        floors["network"] = flops / (gflops * 1e9) * sum(inputs) / sim_s
     else:
         flops = gflops = precision = mm = conv = conv_shape = None
     if scans:
@@ -301,7 +309,7 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
                               kiss_floor(scans, cfg) * per_s)
     return {"sim_s": sim_s, "wall_s": wall, "cpu_s": cpu, "stages": meter.cpu, "calls": meter.calls, "profile": profile,
             "floors": floors, "flops": flops, "gflops": gflops, "matmul_gflops": mm, "conv_gflops": conv,
-            "conv_shape": conv_shape, "precision": precision, "images": len(frames), "scans": len(scans),
+            "conv_shape": conv_shape, "precision": precision, "images": len(frames), "inputs": sum(inputs), "scans": len(scans),
             "labels": r["labels_summary"]}
 
 
@@ -313,7 +321,7 @@ def table(m: dict) -> str:
     how = {"rendering": ("getCameraImage alone, with segmentation (without: {:.3f}" if m.get("profile", "full") == "full"
                          else "getCameraImage alone, without segmentation ({:.3f}")
            + "; {:.3f} of it at any image size: 16x12 pixels cost that)",
-           "network": "{flops:.2f} GFLOP per image at {gf:.1f} GFLOP/s, the faster of {prec} matmul ({mm:.1f}) "
+           "network": "{flops:.2f} GFLOP per input at {gf:.1f} GFLOP/s, the faster of {prec} matmul ({mm:.1f}) "
                       "and the network's fastest convolution alone ({conv:.1f}: {shape})",
            "odometry": "KISS-ICP's own voxelize, align and map update on the points the stack registers (the "
                        "floor left out); KissICP.register_frame on the same whole sweeps: {:.3f} without its "
@@ -360,7 +368,7 @@ def main(argv=None) -> int:
         print(f"bench_stages: {e}", file=sys.stderr)
         return 2
     ls = m["labels"]
-    print(f"profile {args.profile}: {m['sim_s']:.0f} s simulated, {m['images']} images, {m['scans']} sweeps, network {m['precision']}; {m['cpu_s']:.1f} CPU s, "
+    print(f"profile {args.profile}: {m['sim_s']:.0f} s simulated, {m['images']} images ({m['inputs']} network inputs), {m['scans']} sweeps, network {m['precision']}; {m['cpu_s']:.1f} CPU s, "
           f"{m['wall_s']:.1f} wall s; torch threads {os.environ.get('DOPESLAM_TORCH_THREADS', 'default')}; "
           f"load average {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print(f"map: {ls['labelled']}/{ls['objects']} labelled, {ls['false_labels']} false")

@@ -11,7 +11,7 @@ def test_bench_stages_prints_the_table(capsys, monkeypatch):
     assert _load().main(["--duration", "0.5"]) == 0
     out = capsys.readouterr().out
     for row in ("rendering", "LiDAR ray casting", "KISS-ICP odometry", "DOPE network", "depth fit + FPR",
-                "fusion", "**all**", "GFLOP per image", "fastest convolution alone", "KISS-ICP's own voxelize", "KissICP.register_frame"):
+                "fusion", "**all**", "GFLOP per input", "fastest convolution alone", "KISS-ICP's own voxelize", "KissICP.register_frame"):
         assert row in out, row
     from kiss_icp.registration import Registration
     from stack.dope_fpr import DopeDetector
@@ -41,5 +41,7 @@ def test_bench_stages_takes_config_keys(capsys, monkeypatch):
     monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "1")
     assert _load().main(["--duration", "1.5", "--set", "detector.keyframe_m=0.1",
                          "--set", "detector.keyframe_deg=5"]) == 0
-    images = int(re.search(r"simulated, (\d+) images", capsys.readouterr().out).group(1))
+    found = re.search(r"simulated, (\d+) images \((\d+) network inputs\)", capsys.readouterr().out)
+    images, inputs = int(found.group(1)), int(found.group(2))
     assert 1 <= images <= 3  # of 16: the first, then one a second
+    assert inputs == images  # colour input: one network input per image (the floor counts inputs)
