@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import json
 import os
+import select
 import subprocess
 import sys
 import time
@@ -175,6 +176,10 @@ class _Pending:
     def result(self):
         return self._owner._result(self.token)
 
+    def done(self) -> bool:
+        """Whether the child has replied to this job (reads the replies already waiting; never waits)."""
+        return self._owner._replied(self.token)
+
     def cancel(self) -> bool:
         return False
 
@@ -201,6 +206,7 @@ class DetectionProcess(ChildOwner):
         self._done: dict[int, tuple] = {}  # replies read ahead of their turn
         self._read = 0  # replies read so far
         self._built: BuiltDetector | None = None  # from the child's first reply: its detector is built
+        self._pending = bytearray()  # bytes read from the reply pipe that do not yet end a line
 
     def _send(self, obj) -> None:
         try:
@@ -209,8 +215,28 @@ class DetectionProcess(ChildOwner):
         except (BrokenPipeError, OSError):
             self._fail("the detector process exited")
 
-    def _reply(self) -> dict:
-        line = self._replies.readline()
+    def _line(self, wait: bool = True) -> bytes | None:
+        """The child's next reply line; b"" when it has exited; None when ``wait`` is false and no whole
+        line has come yet. The pipe is read in blocks here (not through the file object's buffer), so
+        whether a reply is waiting can be asked without waiting for one."""
+        fd = self._replies.fileno()
+        while True:
+            end = self._pending.find(b"\n")
+            if end >= 0:
+                line = bytes(self._pending[:end + 1])
+                del self._pending[:end + 1]
+                return line
+            if not wait and not select.select([fd], [], [], 0)[0]:
+                return None
+            block = os.read(fd, 1 << 16)
+            if not block:
+                return b""
+            self._pending += block
+
+    def _reply(self, wait: bool = True) -> dict | None:
+        line = self._line(wait)
+        if line is None:
+            return None
         if not line:
             self._fail("the detector process exited")
         reply = json.loads(line)
@@ -231,6 +257,23 @@ class DetectionProcess(ChildOwner):
         if self._built is None:
             self._built = BuiltDetector.from_json(self._reply()["detector"])
         return self._built
+
+    def unfinished(self) -> int:
+        """Jobs the child has not replied to yet (reads the replies already waiting; never waits)."""
+        while self._read < self._next:
+            reply = self._reply(wait=False)
+            if reply is None:
+                break
+            if self._built is None:
+                self._built = BuiltDetector.from_json(reply["detector"])
+            else:
+                self._store(reply)
+        return self._next - self._read
+
+    def _replied(self, token: int) -> bool:
+        if token >= self._read:
+            self.unfinished()
+        return token < self._read
 
     def fits(self, frame: CameraFrame) -> bool:
         """Whether ``frame``'s images fit the slots (else ``submit`` raises ValueError)."""
@@ -262,7 +305,9 @@ class DetectionProcess(ChildOwner):
 
     def _collect_one(self) -> None:
         self.built()  # the child's first reply: its detector is built
-        reply = self._reply()
+        self._store(self._reply())
+
+    def _store(self, reply: dict) -> None:
         self._done[self._read] = ([decode_detection(d) for d in reply["detections"]], float(reply["seconds"]))
         self._read += 1
 

@@ -93,23 +93,27 @@ class BagImageTruth:
 
 # --- the message stream ---------------------------------------------------------------------------
 
+HELPER_DEPTH = 2  # images the helper detection process may hold at once
+
+
 def detected_images(reader: BagReader, detector, every: int, gate, helper=None):
     """Per image of ``reader``: ``(frame, detections or None when not detected, seconds reading it,
     seconds detecting)``. The detector runs on every ``every``-th image that ``gate`` (a
     :class:`stack.keyframes.KeyframeGate`, fed the bag's wheel odometry; None: every image) passes.
 
-    ``helper``: a :class:`testbed.detection_process.DetectionProcess` with the same detector: it
-    detects an image while ``detector`` detects the next one (one image in it at a time); the images,
-    their order and their detections are those without it."""
+    ``helper``: a :class:`testbed.detection_process.DetectionProcess` with the same detector. An image
+    goes to it while it holds fewer than :data:`HELPER_DEPTH`, else ``detector`` detects it here; so
+    the helper, which only detects, takes more of the images than this process, which also reads and
+    decodes them all. The images, their order and their detections are those without it; an image in
+    the helper holds back at most four later ones."""
     frames = reader.camera_frames() if gate is None else reader.frames(lidar=False, camera=True, odometry=True)
     t_last, i = time.perf_counter(), -1
     held: deque = deque()  # [frame, detections or the helper's job, reading s, detecting s], in image order
-    in_helper, behind = None, 0  # the entry the helper detects; entries held after it
+    in_helper: deque = deque()  # (entry, its image index) of the images in the helper, oldest first
 
     def collect():
-        nonlocal in_helper
-        in_helper[1], in_helper[3] = in_helper[1].result()
-        in_helper = None
+        entry, _ = in_helper.popleft()
+        entry[1], entry[3] = entry[1].result()
 
     for frame in frames:
         if not isinstance(frame, CameraFrame):
@@ -119,22 +123,20 @@ def detected_images(reader: BagReader, detector, every: int, gate, helper=None):
         t0 = time.perf_counter()
         entry = [frame, None, t0 - t_last, 0.0]
         if i % every == 0 and (gate is None or gate.passes(frame)):
-            if helper is not None and in_helper is None and helper.fits(frame):
-                entry[1], in_helper, behind = helper.submit(frame), entry, 0
+            if helper is not None and helper.fits(frame) and helper.unfinished() < HELPER_DEPTH:
+                entry[1] = helper.submit(frame)
+                in_helper.append((entry, i))
             else:
                 entry[1] = list(detector.detect(frame))
                 entry[3] = time.perf_counter() - t0
-                if in_helper is not None:  # it detected the earlier image meanwhile
-                    collect()
         held.append(entry)
-        if in_helper is not None:
-            behind += 1
-            if behind > 4:  # images the gate passes by: the helper's image has waited long enough
-                collect()
-        while held and held[0] is not in_helper:
+        # the helper's images back: those it has done, and one that four later images have waited behind
+        while in_helper and (in_helper[0][0][1].done() or i - in_helper[0][1] >= 4):
+            collect()
+        while held and not (in_helper and held[0] is in_helper[0][0]):
             yield tuple(held.popleft())
         t_last = time.perf_counter()
-    if in_helper is not None:
+    while in_helper:
         collect()
     while held:
         yield tuple(held.popleft())

@@ -123,7 +123,10 @@ def test_folded_stages_give_the_same_detections(input_mode):
 @pytest.mark.parametrize("input_mode", ["rgb", "depth"])
 def test_the_detector_process_gives_the_same_detections(input_mode):
     """``dopeslam run``'s detector in a child process (testbed.detection_process) against the same
-    detector here, on rendered frames: every detection the same, bit for bit, extras and their types."""
+    detector here, on rendered frames: every detection the same, bit for bit, extras and their types.
+    Whether jobs are done is seen without waiting for their results (replay's helper process)."""
+    import time
+
     from testbed.detection_process import DetectionProcess, build_detector, encode_detection
     from testbed.run import detector_kwargs
 
@@ -133,6 +136,11 @@ def test_the_detector_process_gives_the_same_detections(input_mode):
     proc = DetectionProcess(kwargs, frames[0].info, threads=1, slots=2)
     try:
         jobs = [proc.submit(f) for f in frames]  # three jobs through two slots
+        assert 1 <= proc.unfinished() <= 2  # the third waited for the first's reply, not for the others
+        deadline = time.monotonic() + 300
+        while proc.unfinished() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert proc.unfinished() == 0 and all(job.done() for job in jobs)
         found = [job.result()[0] for job in jobs]
     finally:
         proc.close()

@@ -1,8 +1,8 @@
 """Replay's image loop with a second detector process beside it (``detected_images(..., helper)``): the
-images come out in their order with the detections the one detector would give, the helper detects
-one image at a time while this process detects the next, and an image in the helper does not hold
-back the images the gate passes by for long. The helper here is a stand-in (its jobs finish when
-asked), so the test is about the loop's order, not about processes."""
+images come out in their order with the detections the one detector would give, the helper holds at
+most two images and takes every image it has room for, and an image in the helper does not hold back
+the images the gate passes by for long. The helper here is a stand-in (its jobs finish when asked, or
+at once), so the test is about the loop's order, not about processes."""
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -50,14 +50,19 @@ class Detector:
 
 
 class Helper(Detector):
-    """Jobs finish when ``result()`` is asked; records how many were in it at once."""
+    """Jobs finish when ``result()`` is asked (``instant``: as soon as they are submitted); records how
+    many were in it at once."""
 
-    def __init__(self):
+    def __init__(self, instant: bool = False):
         super().__init__()
+        self.instant = instant
         self.in_flight, self.most = 0, 0
 
     def fits(self, f):
         return f.rgb.shape == (3, 4, 3)
+
+    def unfinished(self):
+        return 0 if self.instant else self.in_flight
 
     def submit(self, f):
         self.in_flight += 1
@@ -67,7 +72,7 @@ class Helper(Detector):
             self.in_flight -= 1
             return self.detect(f), 0.5
 
-        return SimpleNamespace(result=result)
+        return SimpleNamespace(result=result, done=lambda: self.instant)
 
 
 def run(reader, every=1, gate=None, helper=None):
@@ -78,14 +83,20 @@ def run(reader, every=1, gate=None, helper=None):
 def test_with_a_helper_the_images_and_detections_are_those_without():
     for every in (1, 2, 3):
         alone = run(Reader(11), every)
-        helper = Helper()
-        shared = run(Reader(11), every, helper=helper)
-        assert [(k, d) for k, d, _ in shared] == [(k, d) for k, d, _ in alone]
-        assert [k for k, _, _ in shared] == list(range(11))
-        assert helper.most == 1 and helper.in_flight == 0
         detected = [k for k, d, _ in alone if d is not None]
-        assert helper.seen == detected[0::2]  # every other detected image, the first to the helper
-        assert all(s for _, d, s in shared if d is not None)  # each detected image has its seconds
+        for instant in (False, True):
+            helper = Helper(instant)
+            shared = run(Reader(11), every, helper=helper)
+            assert [(k, d) for k, d, _ in shared] == [(k, d) for k, d, _ in alone]
+            assert [k for k, _, _ in shared] == list(range(11))
+            assert helper.most <= 2 and helper.in_flight == 0
+            assert all(s for _, d, s in shared if d is not None)  # each detected image has its seconds
+            if instant:  # a helper that keeps up takes every image
+                assert helper.seen == detected
+            else:  # one that holds its images takes the first two, then what it has room for
+                assert helper.seen[:2] == detected[:2]
+                if every == 1:  # images come faster than it gives them back: this process detects some
+                    assert 2 < len(helper.seen) < len(detected)
 
 
 def test_an_image_in_the_helper_holds_back_a_few_images_at_most():
@@ -99,6 +110,9 @@ def test_an_image_in_the_helper_holds_back_a_few_images_at_most():
         def fits(self, f):
             return True
 
+        def unfinished(self):
+            return helper.unfinished()
+
         def submit(self, f):
             job = helper.submit(f)
 
@@ -106,7 +120,7 @@ def test_an_image_in_the_helper_holds_back_a_few_images_at_most():
                 collected.append((int(f.rgb[0, 0, 0]), reader.read))
                 return job.result()
 
-            return SimpleNamespace(result=result)
+            return SimpleNamespace(result=result, done=job.done)
 
     got = [(int(f.rgb[0, 0, 0]), dets) for f, dets, _, _ in
            detected_images(reader, Detector(), 1, KeyframeGate(settings), Watching())]
