@@ -377,24 +377,26 @@ def test_replay_detection_process_gives_the_thread_s_results(live, tmp_path, mon
     """A DOPE detector that ``make_detector`` made reads, decodes, gates and detects in a child process
     (``DOPESLAM_DETECTOR_PROCESS``, on by default), two where it detects every image (every other
     image in the second); one process, two, or a thread find the same detections, so the map, the
-    trajectory and the counts are the same bytes, with the keyframe gate and without."""
+    trajectory and the counts are the same bytes, with the keyframe gate and without. Each case runs
+    the default (unset: two processes without the gate, one with it), the other count and the thread."""
     from stack.keyframes import KeyframeSettings
     from testbed.run import make_detector
 
-    for gate in (None, KeyframeSettings(min_motion_m=0.1, min_turn_deg=5.0, max_interval_s=1.0)):
+    gated = KeyframeSettings(min_motion_m=0.1, min_turn_deg=5.0, max_interval_s=1.0)
+    for gate, modes, counts in ((None, ("", "1", "0"), [2, 1, 0]), (gated, ("", "2", "0"), [1, 2, 0])):
         reports = {}
-        for mode in ("", "2", "1", "0"):
+        for mode in modes:
             monkeypatch.setenv("DOPESLAM_DETECTOR_PROCESS", mode)
             out = tmp_path / f"process{mode}_gate{gate is not None}"
             reports[mode] = replay_bag(live["bag"], out, detector=make_detector("rgb", 2, True), keyframes=gate)
-        assert [reports[m]["detector_processes"] for m in ("", "2", "1", "0")] == [1 if gate else 2, 2, 1, 0]
-        assert reports["1"]["detector_process"] and not reports["0"]["detector_process"]
-        outs = [tmp_path / f"process{m}_gate{gate is not None}" for m in ("2", "1", "0")]
+        assert [reports[m]["detector_processes"] for m in modes] == counts
+        assert reports[modes[1]]["detector_process"] and not reports["0"]["detector_process"]
+        outs = [tmp_path / f"process{m}_gate{gate is not None}" for m in modes]
         for name in ("labels.json", "estimate_tum.txt"):
             assert len({(o / name).read_bytes() for o in outs}) == 1, name
-        da, db, dc = (dict(reports[m]["detection"], fps=None) for m in ("2", "1", "0"))
+        da, db, dc = (dict(reports[m]["detection"], fps=None) for m in modes)
         assert da == db == dc and da["frames"] > 0
-        assert reports["1"]["time_split_s"]["image_reading"] > 0
+        assert reports[modes[1]]["time_split_s"]["image_reading"] > 0
         if gate is not None:
             assert 0 < da["keyframe_held_images"] < 81
 
