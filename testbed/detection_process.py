@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import base64
 import json
+import logging
 import os
 import select
 import subprocess
@@ -191,16 +192,18 @@ class DetectionProcess(ChildOwner):
     so ``result()`` of a later job reads the replies of the earlier ones first. At most ``slots`` jobs
     are in flight. ``close()`` ends the child (also on errors). ``built()``: the
     :class:`BuiltDetector` the child runs (waits for it to be built). An error in what the user gave
-    (e.g. a weights file that is not one) is raised as a :class:`stack.errors.DopeSlamError`."""
+    (e.g. a weights file that is not one) is raised as a :class:`stack.errors.DopeSlamError`.
+    ``quiet``: the detector's build-time warnings (its precision, FPR thresholds missing) are not
+    printed: for a second process with the same settings, which would only say them again."""
 
-    def __init__(self, kwargs: dict, info: CameraInfo, threads: int | None = 1, slots: int = 4):
+    def __init__(self, kwargs: dict, info: CameraInfo, threads: int | None = 1, slots: int = 4, quiet: bool = False):
         H, W = info.height, info.width
         self._slots = int(slots)
         self._shm = shared_memory.SharedMemory(create=True, size=slot_bytes(H, W) * self._slots)
         self._shape = (H, W)
         self._proc, self._replies = start_child("testbed.detection_process")
         setup = {"kwargs": encode_value(kwargs), "threads": threads, "shm": self._shm.name,
-                 "height": H, "width": W, "slots": self._slots}
+                 "height": H, "width": W, "slots": self._slots, "quiet": bool(quiet)}
         self._send(setup)
         self._next = 0  # the next job's token
         self._done: dict[int, tuple] = {}  # replies read ahead of their turn
@@ -317,13 +320,21 @@ class DetectionProcess(ChildOwner):
         return self._done.pop(token)
 
 
-def build_detector(kwargs: dict, threads: int | None):
-    """The DOPE detector for the simulator's classes from ``make_detector``'s keyword arguments."""
+def build_detector(kwargs: dict, threads: int | None, quiet: bool = False):
+    """The DOPE detector for the simulator's classes from ``make_detector``'s keyword arguments;
+    ``quiet``: without the warnings it logs while it is built (its precision, FPR thresholds missing)."""
     from sim.objects import load_catalog
     from stack.dope_fpr import DopeDetector
 
     dims = {c: s.dims for c, s in load_catalog().items()}
-    return DopeDetector(dims=dims, threads=threads, **kwargs)
+    logger = logging.getLogger(DopeDetector.__module__)
+    level = logger.level
+    if quiet:
+        logger.setLevel(logging.ERROR)
+    try:
+        return DopeDetector(dims=dims, threads=threads, **kwargs)
+    finally:
+        logger.setLevel(level)
 
 
 def _child_main() -> None:
@@ -340,7 +351,7 @@ def _child_main() -> None:
         shm = shared_memory.SharedMemory(name=setup["shm"])
         resource_tracker.unregister(shm._name, "shared_memory")  # the parent owns (and unlinks) it
         H, W = setup["height"], setup["width"]
-        detector = build_detector(decode_value(setup["kwargs"]), setup["threads"])
+        detector = build_detector(decode_value(setup["kwargs"]), setup["threads"], bool(setup.get("quiet")))
     except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises
         reply(error_json(exc))
         return

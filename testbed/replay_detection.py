@@ -190,7 +190,7 @@ def _child_main() -> None:
         kwargs = decode_value(setup["kwargs"])
         reader = open_bag(setup["bag"], _topics_from_json(setup["topics"]), setup["input"], ground_truth=False)
         if setup.get("helper") and reader.camera_info is not None:  # started first: it builds its network meanwhile
-            helper = DetectionProcess(kwargs, reader.camera_info, setup["threads"])
+            helper = DetectionProcess(kwargs, reader.camera_info, setup["threads"], quiet=True)  # warned below
         detector = build_detector(kwargs, setup["threads"])
         gate = keyframe_gate(None if setup["keyframes"] is None else KeyframeSettings(**setup["keyframes"]))
         every = max(1, int(setup["every"]))

@@ -432,8 +432,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     if in_process is not None:  # started first: it builds its network while the world is built here
         from testbed.detection_process import DetectionProcess
 
-        processes = [DetectionProcess(own_kwargs, in_process, torch_threads() or 1)
-                     for _ in range(detector_processes_wanted(dope_every, keyframes))]
+        processes = [DetectionProcess(own_kwargs, in_process, torch_threads() or 1, quiet=i > 0)
+                     for i in range(detector_processes_wanted(dope_every, keyframes))]
         for p in processes:
             closing.callback(p.close)
     with closing, Episode(scenario, seed=seed, duration=duration, light=light, camera_rate=camera_rate,

@@ -70,3 +70,26 @@ def test_a_frame_of_another_layout_is_refused_before_it_is_sent(tmp_path):
             proc.submit(CameraFrame(0.0, info, depth_m=np.zeros((5, 8), np.float32)))
     finally:
         proc.close()
+
+
+def test_a_quiet_process_keeps_the_build_warnings_to_itself(tmp_path, capfd):
+    """Build-time warnings (here: no FPR thresholds beside the weights) come from the first process
+    only: ``dopeslam run`` starts its second detector process quiet, with the same settings."""
+    import shutil
+
+    from stack.dope_fpr import default_weights
+
+    weights = tmp_path / "copy.pt"  # the shipped network, without its thresholds file beside it
+    shutil.copy(default_weights("rgb"), weights)
+    kwargs = {"weights": str(weights), "input": "rgb", "stages": 1, "fpr": True}
+    said = {}
+    for quiet in (False, True):
+        capfd.readouterr()
+        proc = DetectionProcess(kwargs, CameraInfo(8, 6, np.eye(3)), quiet=quiet)
+        try:
+            assert proc.built().precision == "fp32"
+        finally:
+            proc.close()
+        said[quiet] = capfd.readouterr().err
+    assert said[False].count("no FPR thresholds beside") == 1, said[False]
+    assert "no FPR thresholds" not in said[True], said[True]
