@@ -194,13 +194,6 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
 
     meter = Meter()
     scans, frames, handles, inputs = [], [], {}, []
-    orig_forward = DopeDetector._forward
-
-    def forward(self, x, *a, **k):  # the network's inputs: one per image, or a few depth windows per image
-        inputs.append(len(x))
-        return orig_forward(self, x, *a, **k)
-
-    DopeDetector._forward = forward
     from kiss_icp.kiss_icp import KissICP
     from kiss_icp.mapping import VoxelHashMap
     from kiss_icp.registration import Registration
@@ -218,7 +211,8 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
     meter.wrap(DopeDetector, "_forward", "network")
     meter.wrap(DopeDetector, "detect", "fit_fpr")
     meter.wrap(DopeSlam, "_fuse_image", "fusion")
-    orig_close, orig_process, orig_detect = Episode.close, LidarOdometry.process, DopeDetector.detect
+    orig_close, orig_process, orig_detect, orig_forward = (Episode.close, LidarOdometry.process, DopeDetector.detect,
+                                                           DopeDetector._forward)
 
     def close(self):  # the floors are measured on the episode's own world before it goes
         if "floors" not in handles and "frame" in handles:
@@ -240,7 +234,11 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
         handles.setdefault("detector", self)
         return orig_detect(self, frame)
 
-    Episode.close, LidarOdometry.process, DopeDetector.detect = close, process, detect
+    def forward(self, x, *a, **k):  # the network's inputs: one per image, or a few depth windows per image
+        inputs.append(len(x))
+        return orig_forward(self, x, *a, **k)
+
+    Episode.close, LidarOdometry.process, DopeDetector.detect, DopeDetector._forward = close, process, detect, forward
     try:
         with tempfile.TemporaryDirectory() as tmp:
             w0, c0 = time.perf_counter(), time.process_time()
@@ -255,12 +253,12 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
                             sequential=True, config=config)  # one stage at a time: the meter's CPU deltas are each stage's own
             cpu, wall = time.process_time() - c0, time.perf_counter() - w0
     finally:
-        Episode.close, LidarOdometry.process, DopeDetector.detect = orig_close, orig_process, orig_detect
+        Episode.close, LidarOdometry.process, DopeDetector.detect, DopeDetector._forward = \
+            orig_close, orig_process, orig_detect, orig_forward
         for owner, name in ((Episode, "_camera_frame"), (Episode, "_lidar_scan"), (LidarOdometry, "process"),
                             (DopeDetector, "_forward"), (DopeDetector, "detect"), (DopeSlam, "_fuse_image"),
                             *kiss_calls):
             setattr(owner, name, getattr(owner, name).__wrapped__)
-        DopeDetector._forward = orig_forward
     sim_s = float(r["sim_seconds"])
     meter.cpu["simulation"] = cpu - sum(v for k, v in meter.cpu.items() if k != "simulation")
     det = handles.get("detector")
