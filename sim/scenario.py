@@ -22,6 +22,7 @@ from pydantic import (BaseModel, ConfigDict, Field, ValidationError, field_valid
 from sim.events import Event, check_events
 from sim.faults import Faults
 from stack.errors import DopeSlamError
+from stack.io import read_user_text
 
 SCENES_DIR = Path(__file__).parent / "scenes"
 DEFAULT_SCENARIO = "experiment3_columns"
@@ -288,11 +289,9 @@ def _merge(base: dict, over: dict) -> dict:
 
 
 def _read_toml(path: Path, depth: int = 0) -> dict:
+    text = read_user_text(path, ScenarioError, "a scenario TOML file")
     try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
-    except FileNotFoundError:
-        raise ScenarioError(f"{path}: file not found") from None
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{path}: not valid TOML: {exc}") from None
     parent = data.get("extends")

@@ -17,3 +17,7 @@ class OutputError(DopeSlamError, OSError):
 
 class InputDataError(DopeSlamError, ValueError):
     """Recorded data that cannot be used (too many bad messages, no usable data left)."""
+
+
+class UsageError(DopeSlamError, ValueError):
+    """A command-line option whose value cannot be used (names the option and what was expected)."""

@@ -6,6 +6,7 @@
 - ``atomic_path``: the same for writers that need a file name (pandas, matplotlib, numpy).
 - ``strict_json``: JSON that strict readers accept: NaN and +-inf become ``null``, numpy scalars
   and arrays become numbers and lists, keys keep their order.
+- ``read_user_text``: a file a user named, as text, or one line that says why it cannot be read.
 - ``output_dir``: a whole output folder written into a hidden sibling and renamed into place when
   it is complete. Entries of an existing folder that the new run does not write are kept. A
   sibling left by a killed run is finished (if it was complete) or removed on the next start.
@@ -70,7 +71,9 @@ def atomic_path(path: str | os.PathLike, mode: int | None = None) -> Iterator[st
     exception the file is flushed to disk and replaces ``path`` in one step, else it is removed.
     ``mode``: the new file's permissions (default: those of the file it replaces, else 0644)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise OutputError(f"{path}: is a folder; expected a file name")
+    _make_parent(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + path.suffix)
     os.close(fd)
     try:
@@ -99,6 +102,32 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
 def write_json(path: str | os.PathLike, data: Any, indent: int | None = 2, sort_keys: bool = False) -> Path:
     """``data`` as strict JSON (NaN/inf -> null), atomically, with a final newline."""
     return write_text(path, strict_json(data, indent=indent, sort_keys=sort_keys) + "\n")
+
+
+def read_user_text(path: str | os.PathLike, error: type[Exception], expected: str) -> str:
+    """The UTF-8 text of a file a user named; else ``error`` with one line that names the file and
+    says what was expected (missing, a folder, unreadable, not UTF-8)."""
+    try:
+        return Path(path).read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise error(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a folder; expected {expected}") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read ({exc.strerror}); expected {expected}") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not UTF-8 text (byte {exc.start}); expected {expected}") from None
+
+
+def _make_parent(path: Path) -> None:
+    """``path.parent`` and the folders above it, or an OutputError when a file stands in the way."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        blocker = path.parent
+        while not os.path.lexists(blocker) and blocker != blocker.parent:
+            blocker = blocker.parent
+        raise OutputError(f"{path}: {blocker} is a file, not a folder") from None
 
 
 # --- folders --------------------------------------------------------------------------------------
@@ -183,7 +212,7 @@ def output_dir(final: str | os.PathLike) -> Iterator[Path]:
     final = Path(final)
     if os.path.lexists(final) and (not final.is_dir() or final.is_symlink()):
         raise OutputError(f"{final}: exists and is not a folder; choose another --out")
-    final.parent.mkdir(parents=True, exist_ok=True)
+    _make_parent(final)
     clean_stale(final)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.partial-{os.getpid()}-", dir=final.parent))
     os.chmod(tmp, 0o755)

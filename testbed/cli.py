@@ -11,6 +11,7 @@ import importlib
 import logging
 import os
 import sys
+from pathlib import Path
 
 from stack.errors import DopeSlamError
 
@@ -186,6 +187,31 @@ def check_scenario_args(args) -> None:
                    duration=getattr(args, "duration", None), light=getattr(args, "light", None))
 
 
+# commands whose --out names a file (every other command's --out is a folder)
+FILE_OUT_COMMANDS = {"config", "score", "dope-export", "dope-eval", "calibrate-fpr"}
+
+
+def check_output_args(args) -> None:
+    """Every output a command was asked to write can be made where it was asked for (no file where
+    a folder goes, no folder where a file goes, a writable folder above it), checked before any work
+    starts: a bad ``--out`` costs a line, not an episode."""
+    from testbed.io import check_output_path
+
+    given = vars(args)
+    outputs = [("out", "--out", "file" if args.command in FILE_OUT_COMMANDS else "folder"),
+               ("junit", "--junit", "file"), ("view_save", "--view-save", "file"), ("store", "--store", "file"),
+               ("results_bag", "--results-bag", "bag")]
+    if args.command == "record":
+        outputs.append(("bag", "--bag", "bag"))
+    if given.get("update_baseline"):
+        outputs.append(("baseline", "--baseline", "folder"))
+    for attr, option, kind in outputs:
+        if given.get(attr):
+            if kind == "bag":  # a ROS 1 bag is one NAME.bag file, a ROS 2 bag a folder
+                kind = "file" if Path(given[attr]).suffix == ".bag" else "folder"
+            check_output_path(given[attr], option, kind)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -199,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     reuse_freed_memory()  # this process and the ones it starts: docs/speed.md, "Freed memory kept for reuse"
     try:
         check_scenario_args(args)
+        check_output_args(args)
         if not getattr(args, "json", False):
             with c_stdout_to_stderr():
                 return int(args.func(args) or 0)

@@ -4,6 +4,7 @@ and ``dopeslam replay BAG --out DIR [--lidar-topic T] [--rgb-topic T] [--depth-t
 [--odometry NAME|MODULE:CLASS]``."""
 from __future__ import annotations
 
+from stack.errors import UsageError
 from testbed.commands.options import REPLAY_APPLIES, add_config_options, config_error, config_from_args
 from testbed.commands.run import CONFIG_DEFAULT, add_dope_options, add_odometry_option, add_view_options, open_view
 
@@ -79,9 +80,9 @@ def record(args) -> int:
     from testbed.record import record_episode
 
     if args.format == "ros1" and not args.bag.endswith(".bag"):
-        raise SystemExit(f"--bag {args.bag}: a ROS 1 bag's name must end in .bag")
+        raise UsageError(f"--bag {args.bag}: a ROS 1 bag's name must end in .bag")
     if args.format == "ros2" and args.bag.endswith(".bag"):
-        raise SystemExit(f"--bag {args.bag}: a ROS 2 bag is a directory; its name must not end in .bag")
+        raise UsageError(f"--bag {args.bag}: a ROS 2 bag is a directory; its name must not end in .bag")
     from testbed.commands.run import check_dynamic_options
 
     bad = check_dynamic_options(args, "record")
@@ -147,7 +148,7 @@ def replay(args) -> int:
 
         check_new_output(args.results_bag, "--results-bag", force=args.force, inputs=[args.bag])
     if args.max_bad_messages < 0:
-        raise SystemExit(f"dopeslam replay: --max-bad-messages: expected an integer >= 0, got {args.max_bad_messages}")
+        raise UsageError(f"--max-bad-messages: expected an integer >= 0, got {args.max_bad_messages}")
     topics = BagTopics(args.lidar_topic, args.rgb_topic, args.depth_topic, args.camera_info_topic,
                        base_frame=args.base_frame, T_base_lidar=parse_pose(args.T_base_lidar, "--T-base-lidar"),
                        T_base_camera=parse_pose(args.T_base_camera, "--T-base-camera"),

@@ -4,6 +4,8 @@ from __future__ import annotations
 import json
 import logging
 
+from stack.errors import UsageError
+
 log = logging.getLogger(__name__)
 
 
@@ -13,7 +15,7 @@ def _datagen(args) -> int:
     from sim.datagen import DatagenConfig, generate
 
     if not 0.0 <= args.slim_stand_prob <= 1.0:
-        raise SystemExit(f"--slim-stand-prob: expected a share from 0 to 1, got {args.slim_stand_prob}")
+        raise UsageError(f"--slim-stand-prob: expected a share from 0 to 1, got {args.slim_stand_prob}")
     cfg = DatagenConfig(out_dir=Path(args.out), n_images=args.images, shard_size=args.shard_size, seed=args.seed,
                         workers=args.workers, width=args.width, height=args.height,
                         slim_stand_prob=args.slim_stand_prob)
@@ -35,7 +37,7 @@ def parse_class_weights(items) -> dict:
         except ValueError:
             weight = -1.0
         if not sep or cls not in classes or weight <= 0:
-            raise SystemExit(f"--class-weight: expected CLASS=WEIGHT with CLASS one of {classes} and WEIGHT > 0, "
+            raise UsageError(f"--class-weight: expected CLASS=WEIGHT with CLASS one of {classes} and WEIGHT > 0, "
                              f"got {item!r}")
         out[cls] = weight
     return out

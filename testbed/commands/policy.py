@@ -24,6 +24,8 @@ import math
 import os
 from pathlib import Path
 
+from stack.errors import UsageError
+
 log = logging.getLogger(__name__)
 
 PAPER_ROWS = {"last": "original", "last-fpr": "fpr", "oracle-best": "best", "oracle-worst": "worst"}
@@ -63,9 +65,9 @@ def run(args) -> int:
     names = list(BASELINES) if args.name == "all" else [args.name]
     unknown = [n for n in names if n not in BASELINES]
     if unknown:
-        raise SystemExit(f"evaluate-policy: unknown policy {unknown[0]!r}; expected one of {sorted(BASELINES)} or all")
+        raise UsageError(f"unknown policy {unknown[0]!r}; expected one of {sorted(BASELINES)} or all")
     if args.episodes < 1:
-        raise SystemExit(f"--episodes: expected at least 1, got {args.episodes}")
+        raise UsageError(f"--episodes: expected at least 1, got {args.episodes}")
     scenarios = args.scenario or bundled_scenarios()
     env_kwargs = {"duration": args.duration, "input_mode": args.input_mode, "stages": args.stages,
                   "weights": args.weights, "cache_dir": args.cache, "max_objects": args.max_objects}

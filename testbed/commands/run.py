@@ -232,6 +232,10 @@ def score(args) -> int:
         evidence = resolve_config(args.config, sets, model=RunConfig).evidence
     except ConfigError as e:
         return config_error("score", e)
+    if args.out:  # the scores never go over a saved run's files
+        from testbed.io import check_new_output
+
+        check_new_output(args.out, "--out", force=True, inputs=args.runs)
     rows = []
     for run_dir in args.runs:
         try:

@@ -54,7 +54,7 @@ def register(sub) -> None:
     v.add_argument("--max-images", type=int, default=None)
     v.add_argument("--no-streams", action="store_true", help="the held-out shards only, not the scenario streams")
     tb = hs.add_parser("table", help="print the tables of an existing detector.json")
-    tb.add_argument("json", type=Path)
+    tb.add_argument("report", type=Path, metavar="DETECTOR_JSON")
     h.set_defaults(func=_hog_detector)
 
 

@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 
 from stack.errors import DopeSlamError
+from stack.io import read_user_text
 from testbed.testing.expect import lookup
 
 RUN_METRICS = {  # path: (direction, tolerance)
@@ -51,10 +52,11 @@ def metrics_of(report: dict, case) -> dict:
 
 def load_baseline(folder: str | Path) -> dict:
     path = Path(folder) / "summary.json"
+    if not path.exists():
+        raise BaselineError(f"--baseline {folder}: no summary.json there (write one with --update-baseline)")
+    text = read_user_text(path, BaselineError, "a dopeslam test summary (JSON)")
     try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise BaselineError(f"--baseline {folder}: no summary.json there (write one with --update-baseline)") from None
+        data = json.loads(text)
     except json.JSONDecodeError as e:
         raise BaselineError(f"{path}: not valid JSON ({e})") from None
     if not isinstance(data, dict) or not isinstance(data.get("cases"), list):

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from stack.errors import DopeSlamError
+from stack.io import read_user_text
 from testbed.testing.cells import Cell, parse_seeds
 from testbed.testing.expect import ExpectError, Expectation, Outcome, evaluate_all, parse_expectations
 from testbed.testing.options import RUN_OPTIONS, OptionError, check_options, check_setting, coerce
@@ -103,10 +104,9 @@ def _table(value, where: str) -> dict:
 
 
 def load_suite(path: Path) -> Plan:
+    text = read_user_text(path, SuiteError, "a suite TOML file")
     try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise SuiteError(f"{path}: file not found") from None
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise SuiteError(f"{path}: not valid TOML: {e}") from None
     unknown = set(data) - SUITE_KEYS
@@ -141,8 +141,8 @@ def load_suite(path: Path) -> Plan:
 def is_suite_file(path: Path) -> bool:
     """A suite lists ``[[scenarios]]``; a scenario has a ``[room]`` (or ``extends`` another)."""
     try:
-        data = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError):
+        data = tomllib.loads(path.read_bytes().decode("utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
         return False
     return "scenarios" in data or not ("room" in data or "extends" in data)
 

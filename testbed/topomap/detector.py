@@ -28,7 +28,7 @@ import numpy as np
 
 from stack.topomap.hog_detector import (DEFAULT_COLOUR, DEFAULT_WEIGHTS, HogDetector, TrainingImage, fit_colour_model, iou,
                                 load_shard_images, train_detector)
-from testbed.topomap import InputError
+from testbed.topomap import InputError, print_saved_report
 
 log = logging.getLogger(__name__)
 CLASSES = ("OrangeJuice", "Yogurt", "Mustard", "Raisins", "Cookies", "E")
@@ -243,13 +243,13 @@ def run_args(args) -> int:
     """``dopeslam hog-detector train|eval|table`` (options: ``testbed/commands/topomap.py``)."""
     data = DEFAULT_DATA if getattr(args, "data", None) is None else args.data
     if args.hog_command == "table":
-        try:
-            report = json.loads(args.json.read_text())
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{args.json}: expected an evaluation report (JSON) of dopeslam hog-detector eval: {exc}") from None
-        for res in report["sets"].values():
-            summarise(res)
-        print_table(report)
+        def printer(report: dict) -> None:
+            for res in report["sets"].values():
+                summarise(res)
+            print_table(report)
+
+        print_saved_report(args.report, str(args.report), "an evaluation report (JSON) of dopeslam hog-detector eval",
+                           printer)
         return 0
     if args.hog_command == "train":
         print(json.dumps(train(data, max_images=args.max_images, seed=args.seed, mining_rounds=args.mining_rounds,

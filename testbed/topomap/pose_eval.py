@@ -20,7 +20,6 @@ Features (corners + descriptors) are computed once per image and cached beside t
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import math
 import time
@@ -30,7 +29,7 @@ import numpy as np
 
 from stack.topomap.mono_pose import METHODS, Features, MonoConfig, detect_features
 from stack.topomap.mono_vo import run_sequence
-from testbed.topomap import InputError
+from testbed.topomap import print_saved_report
 from testbed.topomap.stream import CameraStream, cache_root, camera_stream
 
 log = logging.getLogger(__name__)
@@ -241,11 +240,7 @@ def print_tables(report: dict) -> None:
 def run_args(args) -> int:
     """``dopeslam pose-eval`` (options: ``testbed/commands/topomap.py``)."""
     if args.table is not None:
-        try:
-            report = json.loads(args.table.read_text())
-        except (OSError, ValueError) as exc:
-            raise InputError(f"--table {args.table}: expected a pose_eval.json: {exc}") from None
-        print_tables(report)
+        print_saved_report(args.table, f"--table {args.table}", "a pose_eval.json", print_tables)
         return 0
     report = run(args.scenarios.split(","), args.runs, args.out)
     print_tables(report)

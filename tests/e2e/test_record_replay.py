@@ -176,7 +176,7 @@ def test_recorded_bag_is_read_by_rosbags_own_reader(live):
     assert seen[T.TF_STATIC] == seen[T.GT_OBJECTS] == seen[T.METADATA] == 1
 
 
-def test_record_command_writes_a_ros1_bag_rosbags_reads(tmp_path):
+def test_record_command_writes_a_ros1_bag_rosbags_reads(tmp_path, capsys):
     from testbed.cli import main
 
     bag = tmp_path / "short.bag"
@@ -191,8 +191,9 @@ def test_record_command_writes_a_ros1_bag_rosbags_reads(tmp_path):
     with BagReader(bag) as r:
         assert r.metadata["seed"] == 3 and r.metadata["scenario"] == "experiment3_columns"
         assert r.camera_info.width == 640 and r.groundtruth is not None and len(r.groundtruth.objects) == 6
-    with pytest.raises(SystemExit, match="must end in .bag"):
-        main(["record", "--bag", str(tmp_path / "x"), "--format", "ros1", "--duration", "1"])
+    capsys.readouterr()
+    assert main(["record", "--bag", str(tmp_path / "x"), "--format", "ros1", "--duration", "1"]) == 2
+    assert capsys.readouterr().err.strip().endswith("a ROS 1 bag's name must end in .bag")
 
 
 def test_replay_of_a_foreign_bag_without_ground_truth(live, replayed, tmp_path):

@@ -127,3 +127,58 @@ def test_replay_refuses_an_out_folder_inside_the_bag(tmp_path):
     shutil.copytree(tmp_path, bag, dirs_exist_ok=True)
     with pytest.raises(DopeSlamError, match="lies inside, the input bag"):
         replay_bag(bag, bag / "out")
+
+
+def test_an_output_that_cannot_be_made_is_refused_before_any_work(capsys, tmp_path):
+    blocker = tmp_path / "notes"
+    blocker.write_text("the user's")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    runs = tmp_path / "runs"
+    for argv, says in [
+        (["run", "--out", str(blocker / "run")], f"--out {blocker / 'run'}: {blocker} is a file, not a folder"),
+        (["simulate", "--out", str(blocker)], f"--out {blocker}: exists and is not a folder"),
+        (["record", "--bag", str(blocker / "ep.bag")], f"--bag {blocker / 'ep.bag'}: {blocker} is a file"),
+        (["record", "--bag", str(folder), "--format", "ros2", "--force"], None),  # a ROS 2 bag is a folder: passes
+        (["test", "smoke", "--out", str(runs), "--junit", str(folder)], f"--junit {folder}: is a folder"),
+        (["sweep", "smoke", "--out", str(blocker / "s")], f"--out {blocker / 's'}: {blocker} is a file, not a folder"),
+        (["config", "--out", str(folder)], f"--out {folder}: is a folder; expected a file name"),
+        (["run", "--out", str(runs), "--store", str(folder)], f"--store {folder}: is a folder"),
+    ]:
+        if says is None:
+            from testbed.cli import build_parser, check_output_args
+
+            check_output_args(build_parser().parse_args(argv))
+            continue
+        rc, line = _cli(capsys, *argv)
+        assert rc == 2 and line.startswith(f"dopeslam {argv[0]}: {says}"), (argv, line)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder", "notes"]  # no episode ran, nothing was made
+    assert blocker.read_text() == "the user's" and not any(folder.iterdir())
+
+
+def test_a_scenario_that_is_a_folder_or_not_text_is_one_line(capsys, tmp_path):
+    binary = tmp_path / "scene.toml"
+    binary.write_bytes(b"[room]\nname = '\xff\xfe'\n")
+    extends = tmp_path / "child.toml"
+    extends.write_text('extends = "base"\n')
+    (tmp_path / "base").mkdir()
+    for argv, says in [(["run", str(tmp_path)], f"{tmp_path}: is a folder; expected a scenario TOML file"),
+                       (["run", str(binary)], f"{binary}: not UTF-8 text (byte 15); expected a scenario TOML file"),
+                       (["test", str(binary)], f"{binary}: not UTF-8 text (byte 15)"),
+                       (["run", str(extends)], f"{tmp_path / 'base'}: is a folder")]:
+        rc, line = _cli(capsys, *argv, "--out", str(tmp_path / "out"))
+        assert rc == 2 and line.startswith(f"dopeslam {argv[0]}: {says}"), (argv, line)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["evaluate-policy", "all", "--episodes", "0"], "--episodes: expected at least 1, got 0"),
+    (["evaluate-policy", "newest", "--episodes", "1"], "unknown policy 'newest'"),
+    (["record", "--bag", "episode", "--format", "ros1"], "--bag episode: a ROS 1 bag's name must end in .bag"),
+    (["datagen", "--slim-stand-prob", "2"], "--slim-stand-prob: expected a share from 0 to 1, got 2.0"),
+])
+def test_bad_option_values_are_one_line_and_exit_2(capsys, tmp_path, monkeypatch, argv, says):
+    monkeypatch.chdir(tmp_path)
+    rc, line = _cli(capsys, *argv, "--out", "out") if argv[0] != "record" else _cli(capsys, *argv)
+    assert rc == 2 and line.startswith(f"dopeslam {argv[0]}: {says}"), line
+    assert not any(tmp_path.iterdir())

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from stack.dope.train import ShardData, TrainConfig, dope_loss, sample_batch, train
+from stack.errors import UsageError
 
 
 def _write_shard(folder, n=6, seed=0):
@@ -93,5 +94,5 @@ def test_class_weight_flag_is_parsed_and_checked():
 
     assert parse_class_weights(["Yogurt=3", "E=0.5"]) == {"Yogurt": 3.0, "E": 0.5}
     for bad in ("Yogurt", "Banana=2", "Yogurt=-1", "Yogurt=x"):
-        with pytest.raises(SystemExit, match="--class-weight"):
+        with pytest.raises(UsageError, match="--class-weight"):
             parse_class_weights([bad])

@@ -52,11 +52,11 @@ def test_env_robust_mean_is_the_object_store_policy():
 
 # --- evaluate-policy -------------------------------------------------------------------------------
 
-def test_evaluate_policy_rejects_an_unknown_policy(tmp_path):
+def test_evaluate_policy_rejects_an_unknown_policy(tmp_path, capsys):
     from testbed.cli import main
 
-    with pytest.raises(SystemExit, match="unknown policy 'newest'"):
-        main(["evaluate-policy", "newest", "--episodes", "1", "--out", str(tmp_path)])
+    assert main(["evaluate-policy", "newest", "--episodes", "1", "--out", str(tmp_path)]) == 2
+    assert "dopeslam evaluate-policy: unknown policy 'newest'" in capsys.readouterr().err
 
 
 # --- slots: association, actions, cost (no simulation) -------------------------------------------------

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 
@@ -11,8 +12,9 @@ import numpy as np
 import pytest
 
 from stack.errors import DopeSlamError, OutputError
-from stack.io import atomic_path, clean_stale, output_dir, staging_entries, strict_json, write_json, write_text
-from testbed.io import check_new_output
+from stack.io import (atomic_path, clean_stale, output_dir, read_user_text, staging_entries, strict_json, write_json,
+                      write_text)
+from testbed.io import check_new_output, check_output_path
 
 
 def test_strict_json_has_no_nan_or_infinity():
@@ -126,3 +128,55 @@ def test_check_new_output(tmp_path):
         check_new_output(other, "--results-bag", inputs=[bag])
     assert check_new_output(other, "--results-bag", force=True, inputs=[bag]) == other
     assert check_new_output(tmp_path / "new", "--results-bag", inputs=[bag]) == tmp_path / "new"
+
+
+def test_a_file_in_the_way_of_an_output_is_named(tmp_path):
+    blocker = tmp_path / "notes"
+    blocker.write_text("the user's")
+    for target in (blocker / "run", blocker / "a" / "b" / "run"):
+        with pytest.raises(OutputError, match=f"{blocker} is a file, not a folder"):
+            with output_dir(target):
+                pass
+        with pytest.raises(OutputError, match=f"{blocker} is a file, not a folder"):
+            write_text(target / "x.json", "{}")
+    folder = tmp_path / "report.json"
+    folder.mkdir()
+    with pytest.raises(OutputError, match="is a folder; expected a file name"):
+        write_text(folder, "{}")
+    assert blocker.read_text() == "the user's" and folder.is_dir() and not any(folder.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes", "report.json"]  # no staging left
+
+
+def test_check_output_path(tmp_path):
+    blocker = tmp_path / "notes"
+    blocker.write_text("x")
+    (tmp_path / "runs").mkdir()
+    check_output_path(tmp_path / "runs", "--out")  # an existing folder
+    check_output_path(tmp_path / "new" / "deeper" / "run", "--out")  # folders made later
+    check_output_path(tmp_path / "new" / "junit.xml", "--junit", "file")
+    check_output_path(blocker, "--store", "file")  # an existing file, replaced later
+    with pytest.raises(OutputError, match=r"^--out .*notes: exists and is not a folder"):
+        check_output_path(blocker, "--out")
+    with pytest.raises(OutputError, match=r"^--junit .*runs: is a folder; expected a file name"):
+        check_output_path(tmp_path / "runs", "--junit", "file")
+    with pytest.raises(OutputError, match=r"^--out .*notes/a/b: .*notes is a file, not a folder"):
+        check_output_path(blocker / "a" / "b", "--out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes", "runs"]  # the check leaves nothing
+    if os.path.isdir("/proc/self"):  # a folder nobody can create entries in, even root
+        with pytest.raises(OutputError, match=r"^--out /proc/dopeslam-run: cannot write in /proc"):
+            check_output_path("/proc/dopeslam-run", "--out")
+
+
+def test_read_user_text(tmp_path):
+    class Bad(DopeSlamError):
+        pass
+
+    good = tmp_path / "a.toml"
+    good.write_text("name = 'caf\u00e9'\n", encoding="utf-8")
+    assert read_user_text(good, Bad, "a TOML file") == "name = 'caf\u00e9'\n"
+    latin = tmp_path / "b.toml"
+    latin.write_bytes("name = 'caf\u00e9'\n".encode("latin-1"))
+    for path, says in ((tmp_path / "missing.toml", "file not found"), (tmp_path, "is a folder; expected a TOML file"),
+                       (latin, r"not UTF-8 text \(byte 11\); expected a TOML file")):
+        with pytest.raises(Bad, match=f"^{re.escape(str(path))}: {says}"):
+            read_user_text(path, Bad, "a TOML file")

@@ -114,3 +114,17 @@ def test_score_names_a_bad_setting_or_a_missing_file_and_exits_2(tmp_path, capsy
     assert main(["score", str(run)]) == 2
     err = capsys.readouterr().err.strip()
     assert "groundtruth_tum.txt" in err and len(err.splitlines()) == 1
+
+
+def test_score_never_writes_its_scores_over_a_saved_run(tmp_path, capsys):
+    from testbed.cli import main
+
+    run = saved_run(tmp_path)
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    for target in (run / "report.json", run / "labels.json", run / "scores.json"):
+        assert main(["score", str(run), "--out", str(target)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == f"dopeslam score: --out {target}: is (or holds, or lies inside) the input {run}; choose another path"
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    assert main(["score", str(run), "--out", str(tmp_path / "scores.json")]) == 0
+    assert (tmp_path / "scores.json").is_file()

@@ -97,6 +97,27 @@ def test_topomap_commands_parse_and_bad_input_is_one_line_exit_2(tmp_path, capsy
     assert "missing.json" in err[1] and "bad.json" in err[2]
 
 
+def test_a_saved_report_of_the_wrong_shape_prints_one_line_and_no_table(tmp_path, capsys):
+    """The tables of ``hog-detector table`` and ``pose-eval --table`` go to stdout; a JSON file that
+    is not such a report (an object without the fields, a list) is one line, exit 2, no partial table."""
+    from testbed.cli import main
+
+    (tmp_path / "empty.json").write_text("{}")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    for argv, says in [(["hog-detector", "table", "empty.json"], "no field 'sets'"),
+                       (["hog-detector", "table", "list.json"], "list indices must be integers"),
+                       (["pose-eval", "--table", "empty.json"], "no field 'scenarios'"),
+                       (["pose-eval", "--table", "list.json"], "list indices must be integers")]:
+        argv = [str(tmp_path / a) if a.endswith(".json") else a for a in argv]
+        assert main(argv) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and err.count("\n") == 1 and says in err and err.startswith(f"dopeslam {argv[0]}: ")
+    from testbed.cli import build_parser
+
+    args = build_parser().parse_args(["hog-detector", "table", "detector.json"])
+    assert str(args.report) == "detector.json" and not getattr(args, "json", False)  # not --json's stdout mode
+
+
 def test_relative_fix_on_an_unmoved_image_is_no_fix():
     """The robot standing where a route image was taken: the same pixels in both images make OpenCV's
     five-point solver fail (its polynomial vanishes); that is no fix, not an error."""
