@@ -142,6 +142,28 @@ def test_pointcloud_decoder_returns_arrays_or_a_clear_error(n, point_step, data_
     assert all(len(a) == n for a in arrays.values())
 
 
+@SETTINGS
+@given(data=st.one_of(st.binary(max_size=64), st.text(max_size=64).map(lambda t: t.encode("utf-8")),
+                      st.sampled_from([b"\xff\xfe[room]", b"[[scenarios]]\nscenario = 1", b"\x00" * 8,
+                                       "caf\u00e9 = 1".encode("latin-1")])),
+       kind=st.sampled_from(["scenario", "suite", "config.toml", "config.yaml", "config.json"]))
+def test_any_bytes_in_a_user_file_load_or_fail_in_one_line(tmp_path_factory, data, kind):
+    """A scenario, suite or config file holding any bytes (binary, not UTF-8, text that is not the
+    format) loads or ends in one project error naming the file: never a UnicodeDecodeError or
+    another exception that a command line would print as a traceback."""
+    from stack.config import read_file
+    from testbed.testing.suite import load_suite
+
+    folder = tmp_path_factory.mktemp("user")
+    path = folder / ("x.toml" if kind in ("scenario", "suite") else "x." + kind.split(".")[1])
+    path.write_bytes(data)
+    load = {"scenario": load_scenario, "suite": load_suite}.get(kind, read_file)
+    try:
+        load(path)
+    except DopeSlamError as e:
+        assert str(e).startswith(str(path)) and "\n" not in str(e).strip(), str(e)
+
+
 def test_the_property_suites_can_fail():
     with pytest.raises(ScenarioError):
         with_overrides(BASE, light=2.0)
