@@ -21,3 +21,9 @@ class InputDataError(DopeSlamError, ValueError):
 
 class UsageError(DopeSlamError, ValueError):
     """A command-line option whose value cannot be used (names the option and what was expected)."""
+
+
+class ComponentError(DopeSlamError, ValueError):
+    """A plugged-in component (detector, odometry, policy) gave what its Protocol does not allow: a
+    detection that is not one, a pose that is not a transform. Names the component, the input it
+    was given and what was expected."""

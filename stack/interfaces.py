@@ -26,7 +26,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from stack.errors import DopeSlamError
+from stack.errors import ComponentError, DopeSlamError
 from stack.messages import CameraFrame, Detection, LidarScan
 from stack.object_store import POLICIES, Label, Observation, register
 
@@ -99,6 +99,89 @@ class LoopCloser(Protocol):
     def refuse(self, store, pose_at, T_base_cam: np.ndarray): ...
 
     def map_points(self) -> list[np.ndarray]: ...
+
+
+def component_name(component) -> str:
+    """``MODULE:CLASS`` of a component, as an error names it."""
+    cls = type(component)
+    return f"{cls.__module__}:{cls.__qualname__}"
+
+
+def detect(detector: Detector, frame: CameraFrame) -> list[Detection]:
+    """``detector.detect(frame)`` as a list, each item checked against the :class:`Detector` protocol:
+    a :class:`stack.messages.Detection` with a class name and a finite rigid ``T_cam_obj`` (4x4,
+    a rotation and a translation). Anything else is a :class:`stack.errors.ComponentError` naming
+    the detector, the image's stamp and what was wrong, instead of a failure deep in the fusion.
+    What the detector raises itself is left as it is (its traceback shows where)."""
+    result = detector.detect(frame)
+    try:
+        detections = list(result)
+    except TypeError:
+        raise ComponentError(f"detector {component_name(detector)}: detect() on the image at t={float(frame.stamp):.3f} s "
+                             f"returned {type(result).__name__}; expected a list of stack.messages.Detection") from None
+    for i, d in enumerate(detections):
+        why = _not_a_detection(d)
+        if why:
+            raise ComponentError(f"detector {component_name(detector)}: detect() on the image at "
+                                 f"t={float(frame.stamp):.3f} s returned item {i}: {why}")
+    return detections
+
+
+def _not_a_detection(d) -> str:
+    """Why ``d`` is not a usable detection ('' when it is one)."""
+    if not isinstance(d, Detection):
+        return f"a {type(d).__name__}; expected stack.messages.Detection"
+    if not isinstance(d.cls, str) or not d.cls:
+        return f"class {d.cls!r}; expected a class name"
+    why = _not_rigid(d.T_cam_obj)
+    return f"{d.cls} with a T_cam_obj that is {why}" if why else ""
+
+
+def _not_rigid(T) -> str:
+    """What ``T`` is, when it is not a finite rigid 4x4 transform ('' when it is one)."""
+    try:
+        T = np.asarray(T, dtype=float)
+    except (TypeError, ValueError):
+        return f"a {type(T).__name__}, not a 4x4 transform"
+    if T.shape != (4, 4):
+        return f"an array of shape {T.shape}, not a 4x4 transform"
+    if not np.all(np.isfinite(T)):
+        return "a 4x4 array with NaN or inf in it"
+    R = T[:3, :3]
+    if not np.allclose(T[3], (0.0, 0.0, 0.0, 1.0)) or not np.allclose(R @ R.T, np.eye(3), atol=1e-2) \
+            or np.linalg.det(R) < 0:
+        return "a 4x4 array that is not a rigid transform (a rotation, a translation, last row 0 0 0 1)"
+    return ""
+
+
+def check_pose(odometry: Odometry, t: float, T):
+    """``T``, what ``odometry.pose_at(t)`` returned, if it is None or a finite rigid 4x4 transform;
+    else a :class:`stack.errors.ComponentError` naming the odometry and ``t``."""
+    if T is None:
+        return None
+    why = _not_rigid(T)
+    if why:
+        raise ComponentError(f"odometry {component_name(odometry)}: pose_at({float(t):.3f}) returned {why}; "
+                             "expected None or T_map_base")
+    return T
+
+
+def check_trajectory(odometry: Odometry, result) -> tuple[np.ndarray, np.ndarray]:
+    """What ``odometry.trajectory()`` returned, if it is ``(stamps (N,), T_map_base (N, 4, 4))``: finite,
+    one pose per stamp, stamps in time order; else a :class:`stack.errors.ComponentError`."""
+    where = f"odometry {component_name(odometry)}: trajectory()"
+    try:
+        stamps, poses = result
+        stamps, poses = np.asarray(stamps, dtype=float), np.asarray(poses, dtype=float)
+    except (TypeError, ValueError):
+        raise ComponentError(f"{where} returned {type(result).__name__}; expected (stamps (N,), T_map_base (N, 4, 4))") \
+            from None
+    if stamps.ndim != 1 or poses.shape != (len(stamps), 4, 4):
+        raise ComponentError(f"{where} returned stamps of shape {stamps.shape} and poses of shape {poses.shape}; "
+                             "expected (N,) and (N, 4, 4)")
+    if not (np.all(np.isfinite(stamps)) and np.all(np.isfinite(poses))) or np.any(np.diff(stamps) < 0):
+        raise ComponentError(f"{where}: expected finite stamps in time order and finite poses")
+    return stamps, poses
 
 
 class ImportPathError(DopeSlamError, ValueError):

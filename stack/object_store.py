@@ -33,7 +33,7 @@ from openpyxl.utils.exceptions import InvalidFileException
 from scipy.spatial.transform import Rotation
 
 from stack.evidence import CANDIDATE, LABEL, EvidenceConfig, assess, detected_range
-from stack.errors import DopeSlamError
+from stack.errors import ComponentError, DopeSlamError
 from stack.io import atomic_path, write_json
 from stack.messages import Detection
 from stack.retire import RETIRED, revive
@@ -399,7 +399,8 @@ class ObjectStore:
             if label_of([obs], self.policy) is None:
                 return None
             if obs.cls not in self.dims:
-                raise ValueError(f"no cuboid size for class {obs.cls!r}; the store knows {sorted(self.dims)}")
+                raise ComponentError(f"a detection of class {obs.cls!r} at t={float(obs.stamp):.3f} s: no cuboid size for "
+                                     f"that class; the detector's classes must be among the map's {sorted(self.dims)}")
             obj = MapObject(self.next_id(), obs.cls, np.array(obs.xyz, dtype=float),
                             np.array(obs.quat_xyzw, dtype=float), self.dims[obs.cls].copy(), obs.stamp, obs.stamp)
             self.objects[obj.id] = obj

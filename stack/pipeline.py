@@ -30,7 +30,7 @@ import numpy as np
 
 from stack.evidence import carry_views, count_views
 from stack.fusion import fuse
-from stack.interfaces import Detector, LoopCloser, Odometry
+from stack.interfaces import Detector, LoopCloser, Odometry, check_pose, check_trajectory, detect
 from stack.keyframes import KeyframeSettings, keyframe_gate
 from stack.lidar_slam import WheelOdometryTrack
 from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
@@ -195,7 +195,7 @@ class DopeSlam:
         last = getattr(self.odometry, "last_stamp", None)
         if callable(last):
             return last()
-        stamps = self.odometry.trajectory()[0]
+        stamps = check_trajectory(self.odometry, self.odometry.trajectory())[0]
         return float(stamps[-1]) if len(stamps) else None
 
     def on_image(self, frame: CameraFrame, detections: Sequence[Detection] | None = None) -> list[Detection] | None:
@@ -213,7 +213,7 @@ class DopeSlam:
             if not run:
                 return None
             t0 = time.perf_counter()
-            detections = list(self.detector.detect(frame))
+            detections = detect(self.detector, frame)
             self.timing["detection"] += time.perf_counter() - t0
         else:
             self.images += 1
@@ -253,7 +253,7 @@ class DopeSlam:
         self._finished = True
         t0 = time.perf_counter()
         self._fuse_pending(upto=None)
-        stamps, poses_odom = self.odometry.trajectory()
+        stamps, poses_odom = check_trajectory(self.odometry, self.odometry.trajectory())
         poses, store, map_points = poses_odom, self.store, self._map_points
         if self.loop_closer is not None and len(stamps):
             poses = self.loop_closer.finish(stamps, poses_odom)
@@ -289,7 +289,7 @@ class DopeSlam:
 
         def pose_at(t: float):
             if t not in poses:
-                poses[t] = self.odometry.pose_at(t)
+                poses[t] = check_pose(self.odometry, t, self.odometry.pose_at(t))
             return poses[t]
 
         fused, seen = [], set()

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.child import ChildOwner, child_command, package_env
+from stack.interfaces import detect
 from stack.messages import CameraFrame, CameraInfo, Detection
 
 
@@ -365,10 +366,10 @@ def _child_main() -> None:
             frame = CameraFrame(job["stamp"], CameraInfo(W, H, decode_value(job["K"]), job["frame_id"]), rgb, depth,
                                 decode_value(job["T"]))
             t0 = time.perf_counter()
-            dets = list(detector.detect(frame))
+            dets = detect(detector, frame)
             seconds = time.perf_counter() - t0
             reply({"detections": [encode_detection(d) for d in dets], "seconds": seconds})
-        except Exception as exc:  # noqa: BLE001
-            reply({"error": f"{type(exc).__name__}: {exc}"})
+        except Exception as exc:  # noqa: BLE001 - a detection that is not one is the user's error, as at start
+            reply(error_json(exc))
             return
     shm.close()

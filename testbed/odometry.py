@@ -26,6 +26,8 @@ import numpy as np
 
 from sim.episode import Episode
 from stack import metrics
+from stack.errors import InputDataError
+from stack.interfaces import check_trajectory
 from stack.lidar_slam import LidarOdometryConfig
 from stack.messages import CameraFrame, LidarScan, WheelOdometry
 from stack.transforms import transform_points, voxel_thin
@@ -160,9 +162,10 @@ def run_odometry(scenario=None, seed: int | None = None, out_dir: str | os.PathL
                 last_report = time.perf_counter()
                 log.info("odometry: sim t = %.1f / %.1f s, %d scans, %d registered", msg.stamp, ep.duration,
                          scans, pipe.registered)
-        registered = len(odo.trajectory()[0])
+        registered = len(check_trajectory(odo, odo.trajectory())[0])
         if registered < 2:
-            raise RuntimeError(f"{ep.sc.name}: only {registered} scans registered; nothing to score")
+            raise InputDataError(f"{ep.sc.name}: {registered} scan(s) registered in {ep.duration:g} s; nothing to score "
+                                 "(a longer --duration, or an odometry that registers the scans)")
         result = pipe.finish()
         stamps, T_odom, T_map_base = result.stamps, result.T_map_base_odometry, result.T_map_base
         gt = ep.T_world_base_at(stamps)

@@ -33,7 +33,7 @@ from typing import Callable
 import numpy as np
 
 from stack.errors import OutputError
-from stack.interfaces import Detector
+from stack.interfaces import Detector, check_trajectory, detect
 from stack.keyframes import keyframe_gate
 from stack.messages import CameraFrame, LidarScan
 from stack.metrics import write_tum
@@ -127,7 +127,7 @@ def detected_images(reader: BagReader, detector, every: int, gate, helper=None):
                 entry[1] = helper.submit(frame)
                 in_helper.append((entry, i))
             else:
-                entry[1] = list(detector.detect(frame))
+                entry[1] = detect(detector, frame)
                 entry[3] = time.perf_counter() - t0
         held.append(entry)
         # the helper's images back: those it has done, and one that four later images have waited behind
@@ -397,7 +397,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             t_last = time.perf_counter()
         if not parallel:
             dlog.seconds = pipe.timing["detection"]
-        if not len(odom.trajectory()[0]):
+        if not len(check_trajectory(odom, odom.trajectory())[0]):
             raise MissingTopicError(bag.path, "lidar", f"scans on {bag.lidar_topic} that odometry can register",
                                     bag.topics, f"{scans} scan(s) read, none registered")
         result = pipe.finish()

@@ -22,6 +22,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from stack.config import torch_threads
+from stack.errors import InputDataError
+from stack.interfaces import detect
 from stack.lidar_slam import LidarOdometry
 from stack.messages import CameraFrame, Detection, LidarScan, WheelOdometry
 from stack.metrics import ate_rmse, ate_rmse_umeyama, rpe, write_tum
@@ -287,7 +289,7 @@ class _Ahead:
 
     def _detect(self, frame):
         t0 = time.perf_counter()
-        dets = list(self._detector.detect(frame))
+        dets = detect(self._detector, frame)
         return dets, time.perf_counter() - t0
 
     def __iter__(self):
@@ -538,6 +540,9 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             timing["recording"] = recorder.seconds
         wall = time.perf_counter() - wall0
         store, stamps, poses, map_points = result.store, result.stamps, result.T_map_base, result.map_points
+        if not len(stamps):  # no map frame, so nothing to place or score
+            raise InputDataError(f"{ep.sc.name}: the odometry registered no LiDAR scan in {ep.duration:g} s, so there is "
+                                 "no map (a longer --duration, fewer dropped scans, or an odometry that registers them)")
         T_world_map = ep.T_world_base_at(stamps[0])  # map = base_link at the first registered scan
         odo = score_trajectory(stamps, poses, ep, T_world_map)
         if lc is not None:  # the closed-loop trajectory replaced the odometry's; labels were placed again

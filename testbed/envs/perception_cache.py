@@ -44,6 +44,7 @@ from typing import Callable, Iterator
 import cv2
 import numpy as np
 
+from stack.interfaces import detect
 from stack.messages import CameraFrame, Detection, LidarScan
 from stack.transforms import interpolate_trajectory, inv
 
@@ -229,7 +230,7 @@ class LivePerception:
             if missing:
                 raise ValueError(f"detector gave stage counts {sorted(by_stage)}, not {missing}")
             return {s: by_stage[s] for s in self.stages}
-        return {self.stages[0]: self.detector.detect(frame)}
+        return {self.stages[0]: detect(self.detector, frame)}
 
     def _on_fused(self, fi) -> None:
         """A frame the pipeline fused (``stack.pipeline.FusedImage``) -> a :class:`FusedFrame`."""

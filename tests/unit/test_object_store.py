@@ -75,7 +75,9 @@ def test_an_object_edited_by_hand_is_not_moved_by_new_detections():
 
 
 def test_a_class_without_a_cuboid_size_is_refused():
-    with pytest.raises(ValueError, match="no cuboid size for class 'Banana'"):
+    from stack.errors import ComponentError
+
+    with pytest.raises(ComponentError, match="class 'Banana' at t=0.000 s: no cuboid size for that class"):
         ObjectStore(DIMS).add(obs(0.0, (0, 0, 0), cls="Banana"))
 
 

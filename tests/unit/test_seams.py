@@ -13,8 +13,10 @@ import numpy as np
 import pytest
 
 from helpers import ROOT
-from stack.interfaces import (Detector, ImportPathError, LabellingPolicy, LoopCloser, Odometry, entry_point_names,
-                              load_detector, load_import_path, load_odometry, odometry_factory, resolve_policy)
+from stack.errors import ComponentError, DopeSlamError
+from stack.interfaces import (Detector, ImportPathError, LabellingPolicy, LoopCloser, Odometry, check_pose,
+                              check_trajectory, entry_point_names, load_detector, load_import_path, load_odometry,
+                              odometry_factory, resolve_policy)
 from stack.object_store import POLICIES, Label, Observation
 from stack.messages import LidarScan, WheelOdometry
 from stack.pipeline import DopeSlam
@@ -172,6 +174,48 @@ class StandingStill:
         return np.array(self.stamps), np.tile(np.eye(4), (len(self.stamps), 1, 1))
 
 
+class ReturnsNothing:
+    def detect(self, frame):
+        return None
+
+class ReturnsNames:
+    def detect(self, frame):
+        return ["Mustard"]
+
+def _ahead(cls, T, stamp):
+    return [Detection(cls, stamp, T, np.zeros((9, 2)), np.ones(9), 2.0)]
+
+class LostPose:
+    def detect(self, frame):
+        return _ahead("Mustard", np.full((4, 4), np.nan), frame.stamp)
+
+class ScaledPose:
+    def detect(self, frame):
+        return _ahead("Mustard", np.diag([2.0, 2.0, 2.0, 1.0]), frame.stamp)
+
+class BananaAhead:
+    def detect(self, frame):
+        T = np.eye(4)
+        T[2, 3] = 1.0
+        return _ahead("Banana", T, frame.stamp)
+
+class LostOdometry(StandingStill):
+    def pose_at(self, t):
+        return np.full((4, 4), np.nan)
+
+class FlatOdometry(StandingStill):
+    def pose_at(self, t):
+        return np.eye(3)
+
+class NoTrajectory(StandingStill):
+    def trajectory(self):
+        return None
+
+class ShortTrajectory(StandingStill):
+    def trajectory(self):
+        return np.array(self.stamps), np.eye(4)[None]
+
+
 def first_observation(observations):
     """A user's labelling policy: the first observation is the label."""
     from stack.object_store import Label
@@ -248,6 +292,59 @@ def test_a_bad_odometry_is_one_line_and_exit_status_2(user_module, spec, message
         assert main([*command, "--odometry", spec, "--out", "unused"]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith(f"dopeslam {command[0]}: --odometry {spec!r}: ") and message in err and "\n" not in err
+
+
+@pytest.mark.parametrize("cls, message", [
+    ("ReturnsNothing", "detector user_parts:ReturnsNothing: detect() on the image at t=0.080 s returned NoneType; "
+                       "expected a list of stack.messages.Detection"),
+    ("ReturnsNames", "returned item 0: a str; expected stack.messages.Detection"),
+    ("LostPose", "returned item 0: Mustard with a T_cam_obj that is a 4x4 array with NaN or inf in it"),
+    ("ScaledPose", "returned item 0: Mustard with a T_cam_obj that is a 4x4 array that is not a rigid transform"),
+    ("BananaAhead", "a detection of class 'Banana' at t=0.080 s: no cuboid size for that class"),
+])
+def test_a_detector_that_breaks_its_contract_is_one_clear_error(user_module, cls, message):
+    """Instead of a failure deep in the fusion (an SVD of NaN, a matmul of the wrong shape, a str with
+    no ``cls``), the detector is named with the image and what it returned."""
+    pipe = DopeSlam(LineOdometry(), load_detector(f"{user_module}:{cls}"), T_BASE_CAM, DIMS)
+    pipe.on_scan(scan(0.0))
+    with pytest.raises(ComponentError, match=re.escape(message)) as err:
+        pipe.on_image(image(0.08))
+        pipe.on_scan(scan(0.1))
+        pipe.finish()
+    assert "\n" not in str(err.value) and isinstance(err.value, DopeSlamError)
+
+
+@pytest.mark.parametrize("cls, message", [
+    ("LostOdometry", "odometry user_parts:LostOdometry: pose_at(0.080) returned a 4x4 array with NaN or inf in it"),
+    ("FlatOdometry", "pose_at(0.080) returned an array of shape (3, 3), not a 4x4 transform"),
+    ("NoTrajectory", "odometry user_parts:NoTrajectory: trajectory() returned NoneType; expected (stamps (N,), "
+                     "T_map_base (N, 4, 4))"),
+    ("ShortTrajectory", "trajectory() returned stamps of shape (2,) and poses of shape (1, 4, 4); "
+                        "expected (N,) and (N, 4, 4)"),
+])
+def test_an_odometry_that_breaks_its_contract_is_one_clear_error(user_module, cls, message):
+    pipe = DopeSlam(load_odometry(f"{user_module}:{cls}", np.eye(4)), load_detector(f"{user_module}:MustardAhead"),
+                    T_BASE_CAM, DIMS)
+    with pytest.raises(ComponentError, match=re.escape(message)):
+        pipe.on_scan(scan(0.0))
+        pipe.on_image(image(0.08))
+        pipe.on_scan(scan(0.1))
+        pipe.finish()
+
+
+def test_the_contract_checks_pass_what_the_protocols_allow(user_module):
+    """A rigid pose with float noise, None for an unknown pose and an empty trajectory pass unchanged."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_matrix().astype(np.float32)
+    T[:3, 3] = (0.1, 0.2, 3.0)
+    odom = load_odometry(f"{user_module}:StandingStill", np.eye(4))
+    assert check_pose(odom, 0.0, T) is T and check_pose(odom, 0.0, None) is None
+    stamps, poses = check_trajectory(odom, (np.zeros(0), np.zeros((0, 4, 4))))
+    assert stamps.shape == (0,) and poses.shape == (0, 4, 4)
+    with pytest.raises(ComponentError, match="time order"):
+        check_trajectory(odom, (np.array([0.2, 0.1]), np.tile(np.eye(4), (2, 1, 1))))
 
 
 # --- components an installed package registers by name (entry points) ---------------------------------
