@@ -137,7 +137,33 @@ def get_policy(name: str) -> Policy:
 
 
 def label_of(observations: Sequence[Observation], policy: str = "robust-mean") -> Label | None:
-    return get_policy(policy)(observations)
+    """The label ``policy`` gives ``observations``: None, or a :class:`Label` with a finite ``xyz`` (3,)
+    and ``quat_xyzw`` (4,); anything else from a policy is a :class:`stack.errors.ComponentError`
+    naming it."""
+    label = get_policy(policy)(observations)
+    if label is None:
+        return None
+    why = ""
+    if not isinstance(label, Label):
+        why = f"a {type(label).__name__}; expected None or stack.object_store.Label"
+    else:
+        for name, size in (("xyz", 3), ("quat_xyzw", 4)):
+            value = np.asarray(getattr(label, name), dtype=float) if _numeric(getattr(label, name)) else None
+            if value is None or value.shape != (size,) or not np.all(np.isfinite(value)):
+                why = f"a Label whose {name} is {getattr(label, name)!r}; expected {size} finite numbers"
+                break
+    if why:
+        raise ComponentError(f"policy {policy}: for {len(observations)} observation(s) of class "
+                             f"{observations[0].cls if observations else '?'} it returned {why}")
+    return label
+
+
+def _numeric(value) -> bool:
+    try:
+        np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return True
 
 
 def _label(o: Observation) -> Label:

@@ -216,6 +216,15 @@ class ShortTrajectory(StandingStill):
         return np.array(self.stamps), np.eye(4)[None]
 
 
+def names_the_class(observations):
+    return observations[0].cls
+
+def nowhere(observations):
+    from stack.object_store import Label
+    o = observations[0]
+    return Label(np.full(3, np.nan), o.quat_xyzw.copy(), o.belief_sum)
+
+
 def first_observation(observations):
     """A user's labelling policy: the first observation is the label."""
     from stack.object_store import Label
@@ -330,6 +339,25 @@ def test_an_odometry_that_breaks_its_contract_is_one_clear_error(user_module, cl
         pipe.on_image(image(0.08))
         pipe.on_scan(scan(0.1))
         pipe.finish()
+
+
+@pytest.mark.parametrize("policy, message", [
+    ("names_the_class", "policy user_parts:names_the_class: for 1 observation(s) of class Mustard it returned a str; "
+                        "expected None or stack.object_store.Label"),
+    ("nowhere", "it returned a Label whose xyz is array([nan, nan, nan]); expected 3 finite numbers"),
+])
+def test_a_policy_that_breaks_its_contract_is_one_clear_error(user_module, policy, message):
+    """Before, a str failed deep in the store and a NaN label went into the map (and the xlsx) silently."""
+    name = resolve_policy(f"{user_module}:{policy}")
+    try:
+        pipe = DopeSlam(LineOdometry(), load_detector(f"{user_module}:MustardAhead"), T_BASE_CAM, DIMS, policy=name)
+        pipe.on_scan(scan(0.0))
+        pipe.on_image(image(0.08))
+        with pytest.raises(ComponentError, match=re.escape(message)):
+            pipe.on_scan(scan(0.1))
+            pipe.finish()
+    finally:
+        POLICIES.pop(name, None)
 
 
 def test_the_contract_checks_pass_what_the_protocols_allow(user_module):
