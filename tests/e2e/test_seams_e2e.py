@@ -43,18 +43,22 @@ def test_a_broken_detector_or_no_registered_scan_is_one_line_and_exit_2(tmp_path
     """Whichever process or thread runs the detector, its bad detection ends the run with one line that
     names it; a run whose odometry registered no scan says so instead of an IndexError."""
     import os
+    import sys
 
-    (tmp_path / "broken_parts.py").write_text(BROKEN_DETECTOR)
+    (tmp_path / "nan_parts.py").write_text(BROKEN_DETECTOR)
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
-    cases = [(["--detector", "broken_parts:NanAhead", "--duration", "1"],
-              "dopeslam run: detector broken_parts:NanAhead: detect() on the image at t=0.000 s returned item 0: "
+    cases = [(["--detector", "nan_parts:NanAhead", "--duration", "1"],
+              "dopeslam run: detector nan_parts:NanAhead: detect() on the image at t=0.000 s returned item 0: "
               "Mustard with a T_cam_obj that is a 4x4 array with NaN or inf in it"),
              (["--duration", "0.05"], "dopeslam run: experiment3_columns: the odometry registered no LiDAR scan in "
                                       "0.05 s, so there is no map")]
-    for argv, says in cases:
-        capsys.readouterr()
-        assert main(["run", *argv, "--out", str(tmp_path / "out")]) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert err[-1].startswith(says), err[-1]
+    try:
+        for argv, says in cases:
+            capsys.readouterr()
+            assert main(["run", *argv, "--out", str(tmp_path / "out")]) == 2
+            err = capsys.readouterr().err.strip().splitlines()
+            assert err[-1].startswith(says), err[-1]
+    finally:
+        sys.modules.pop("nan_parts", None)
     assert not (tmp_path / "out").exists()

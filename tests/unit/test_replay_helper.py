@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from stack.keyframes import KeyframeGate, KeyframeSettings
-from stack.messages import CameraFrame, CameraInfo, WheelOdometry
+from stack.messages import CameraFrame, CameraInfo, Detection, WheelOdometry
 from testbed.replay import detected_images
 
 INFO = CameraInfo(4, 3, np.eye(3))
@@ -46,7 +46,12 @@ class Detector:
 
     def detect(self, f):
         self.seen.append(int(f.rgb[0, 0, 0]))
-        return [("det", int(f.rgb[0, 0, 0]))]
+        return [Detection("det", float(f.rgb[0, 0, 0]), np.eye(4), np.zeros((9, 2)), np.ones(9), 0.0)]
+
+
+def tags(dets):
+    """A list of detections as (class, stamp) pairs, which compare with ==; None stays None."""
+    return None if dets is None else [(d.cls, int(d.stamp)) for d in dets]
 
 
 class Helper(Detector):
@@ -76,7 +81,7 @@ class Helper(Detector):
 
 
 def run(reader, every=1, gate=None, helper=None):
-    return [(int(f.rgb[0, 0, 0]), dets, seconds > 0 if dets is not None else None)
+    return [(int(f.rgb[0, 0, 0]), tags(dets), seconds > 0 if dets is not None else None)
             for f, dets, _, seconds in detected_images(reader, Detector(), every, gate, helper)]
 
 
@@ -122,7 +127,7 @@ def test_an_image_in_the_helper_holds_back_a_few_images_at_most():
 
             return SimpleNamespace(result=result, done=job.done)
 
-    got = [(int(f.rgb[0, 0, 0]), dets) for f, dets, _, _ in
+    got = [(int(f.rgb[0, 0, 0]), tags(dets)) for f, dets, _, _ in
            detected_images(reader, Detector(), 1, KeyframeGate(settings), Watching())]
     assert got == [(k, d) for k, d, _ in alone]
     detected = [k for k, d in got if d is not None]

@@ -5,7 +5,7 @@ import threading
 import numpy as np
 import pytest
 
-from stack.messages import CameraFrame, CameraInfo, LidarScan
+from stack.messages import CameraFrame, CameraInfo, Detection, LidarScan
 from testbed.run import _Ahead
 
 
@@ -17,7 +17,7 @@ class CountingDetector:
 
     def detect(self, frame):
         self.threads.add(threading.current_thread().name)
-        return [("det", frame.stamp)]
+        return [Detection("det", frame.stamp, np.eye(4), np.zeros((9, 2)), np.ones(9), 0.0)]
 
 
 def _messages(n=10):
@@ -34,7 +34,7 @@ def test_order_and_detections_as_in_the_loop(every):
     assert [type(m).__name__ for m, _, _ in out] == [type(m).__name__ for m in _messages()]
     images = [(m, d) for m, d, _ in out if isinstance(m, CameraFrame)]
     for i, (m, d) in enumerate(images):
-        assert d == ([("det", m.stamp)] if i % every == 0 else None)
+        assert (d if d is None else [(x.cls, x.stamp) for x in d]) == ([("det", m.stamp)] if i % every == 0 else None)
     assert all(d is None for m, d, _ in out if not isinstance(m, CameraFrame))
     assert det.threads and all(t.startswith("run-detection") for t in det.threads)
 
