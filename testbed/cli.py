@@ -226,6 +226,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_scenario_args(args)
         check_output_args(args)
+        if getattr(args, "ray_address", None):  # before any work: a wrong address would cost Ray's minutes of retries
+            from testbed.matrix import check_ray_address
+
+            check_ray_address(args.ray_address)
         if not getattr(args, "json", False):
             with c_stdout_to_stderr():
                 return int(args.func(args) or 0)

@@ -293,18 +293,42 @@ def _ray_cell(spec: dict, collect_files: bool) -> dict:
                 "error": None if report is not None else "no report.json written"}
 
 
+def check_ray_address(ray_address: str | None, timeout_s: float = 5.0) -> None:
+    """A cluster's address (``HOST:PORT``, ``ray://HOST:PORT``; ``auto`` and None pass) that something
+    answers at within ``timeout_s``; else a MatrixError in one line. Without this, Ray retries a wrong
+    address for minutes before it gives up."""
+    if not ray_address or ray_address == "auto":
+        return
+    import socket
+
+    host, sep, port = ray_address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise MatrixError(f"--ray-address {ray_address}: expected HOST:PORT (a head node's, e.g. 10.0.0.5:6379), "
+                          "ray://HOST:PORT or auto")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        why = "no answer" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
+        raise MatrixError(f"--ray-address {ray_address}: no Ray cluster answers there ({why} within {timeout_s:g} s); "
+                          "start one with `ray start --head` or check the address") from None
+
+
 def _ray(ray_address: str | None):
     try:
         import ray
     except ImportError:
         raise MatrixError("--ray: Ray is not installed; install it with: pip install -e '.[ray]'") from None
+    check_ray_address(ray_address)
     if not ray.is_initialized():
         env = {"env_vars": {"DOPESLAM_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1", **_side_by_side_env()}}
         extra = {}
         if ray_address and ray_address.split(":")[0] in ("127.0.0.1", "localhost"):
             extra["_node_ip_address"] = "127.0.0.1"  # a cluster on this machine's loopback: join it there
-        ray.init(address=ray_address, runtime_env=env, log_to_driver=False, include_dashboard=False,
-                 logging_level=logging.WARNING, **extra)
+        try:
+            ray.init(address=ray_address, runtime_env=env, log_to_driver=False, include_dashboard=False,
+                     logging_level=logging.WARNING, **extra)
+        except ConnectionError as exc:  # something answered, but not a Ray cluster's head
+            raise MatrixError(f"--ray-address {ray_address}: {str(exc).splitlines()[0]}") from None
     return ray
 
 

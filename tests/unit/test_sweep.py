@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from helpers.cli import DOPESLAM
-from testbed.matrix import Cell, MatrixError, SeedSyntaxError, cell_key, parse_seeds
+from testbed.matrix import Cell, MatrixError, SeedSyntaxError, cell_key, check_ray_address, parse_seeds
 from testbed.sweep import expand, flatten
 
 
@@ -115,3 +115,31 @@ def test_bad_arguments_are_one_line_errors(tmp_path):
         assert r.returncode == 2, (extra, r.stderr)
         assert word in r.stderr and "Traceback" not in r.stderr
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_a_ray_address_nothing_answers_at_is_one_line_before_any_work(tmp_path, capsys):
+    """Ray retries a wrong address for minutes; the check says so in a moment, naming the option."""
+    import socket
+
+    from testbed.cli import main
+
+    with socket.socket() as listening:
+        listening.bind(("127.0.0.1", 0))
+        listening.listen()
+        check_ray_address(f"127.0.0.1:{listening.getsockname()[1]}")  # something answers: Ray takes it from there
+        with socket.socket() as closed:
+            closed.bind(("127.0.0.1", 0))
+            free = closed.getsockname()[1]
+    for address in (None, "", "auto"):
+        check_ray_address(address)
+    with pytest.raises(MatrixError, match=r"^--ray-address 127\.0\.0\.1:\d+: no Ray cluster answers there"):
+        check_ray_address(f"127.0.0.1:{free}")
+    for bad in ("localhost", "host:port", "ray://:10001", "10.0.0.5:70000"):
+        with pytest.raises(MatrixError, match="expected HOST:PORT"):
+            check_ray_address(bad)
+    for argv in (["sweep", "experiment3_columns", "--seeds", "0"], ["test", "smoke", "--ray"]):
+        assert main([*argv, "--ray-address", f"ray://127.0.0.1:{free}", "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"dopeslam {argv[0]}: --ray-address ray://127.0.0.1:{free}: no Ray cluster answers there")
+        assert "\n" not in err
+    assert not (tmp_path / "out").exists()
