@@ -685,8 +685,10 @@ def print_summary(report: dict) -> None:
     if d.get("instances", 0) is None:
         rec = "not scored (no segmentation image)"
     fps = "-" if d["fps"] is None else f"{d['fps']:.1f}"
+    rpe = o["rpe_trans_pct"]
+    rpe = "- (too short a path)" if rpe is None or not math.isfinite(rpe) else f"{rpe:.2f} %"
     print(f"detection: {d['predictions']} predictions in {d['frames']} frames, precision {prec}, recall {rec}, "
-          f"{fps} frames/s; odometry ATE {100 * o['ate_rmse_m']:.1f} cm, RPE {o['rpe_trans_pct'] or math.nan:.2f} %")
+          f"{fps} frames/s; odometry ATE {100 * o['ate_rmse_m']:.1f} cm, RPE {rpe}")
     if "loop_closures" in o:
         print(f"loop closure: {o['loop_closures']} closures ({o['false_loop_closures']} false), "
               f"{o['loop_candidates_rejected']} candidates rejected; ATE {100 * o['ate_rmse_m']:.1f} cm closed-loop, "
