@@ -143,27 +143,25 @@ def label_of(observations: Sequence[Observation], policy: str = "robust-mean") -
     label = get_policy(policy)(observations)
     if label is None:
         return None
-    why = ""
     if not isinstance(label, Label):
         why = f"a {type(label).__name__}; expected None or stack.object_store.Label"
     else:
-        for name, size in (("xyz", 3), ("quat_xyzw", 4)):
-            value = np.asarray(getattr(label, name), dtype=float) if _numeric(getattr(label, name)) else None
-            if value is None or value.shape != (size,) or not np.all(np.isfinite(value)):
-                why = f"a Label whose {name} is {getattr(label, name)!r}; expected {size} finite numbers"
-                break
+        why = _not_numbers(label.xyz, 3, "xyz") or _not_numbers(label.quat_xyzw, 4, "quat_xyzw")
     if why:
         raise ComponentError(f"policy {policy}: for {len(observations)} observation(s) of class "
                              f"{observations[0].cls if observations else '?'} it returned {why}")
     return label
 
 
-def _numeric(value) -> bool:
+def _not_numbers(value, size: int, name: str) -> str:
+    """Why ``value`` is not ``size`` finite numbers ('' when it is)."""
     try:
-        np.asarray(value, dtype=float)
+        array = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
-        return False
-    return True
+        array = None
+    if array is None or array.shape != (size,) or not np.isfinite(array).all():
+        return f"a Label whose {name} is {value!r}; expected {size} finite numbers"
+    return ""
 
 
 def _label(o: Observation) -> Label:
