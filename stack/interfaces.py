@@ -118,8 +118,9 @@ def detect(detector: Detector, frame: CameraFrame) -> list[Detection]:
     try:
         detections = list(result)
     except TypeError:
-        raise ComponentError(f"detector {component_name(detector)}: detect() on the image at t={float(frame.stamp):.3f} s "
-                             f"returned {type(result).__name__}; expected a list of stack.messages.Detection") from None
+        raise ComponentError(f"detector {component_name(detector)}: detect() on the image at "
+                             f"t={float(frame.stamp):.3f} s returned {type(result).__name__}; expected a list of "
+                             "stack.messages.Detection") from None
     for i, d in enumerate(detections):
         why = _not_a_detection(d)
         if why:
@@ -181,8 +182,8 @@ def check_trajectory(odometry: Odometry, result) -> tuple[np.ndarray, np.ndarray
         stamps, poses = result
         stamps, poses = np.asarray(stamps, dtype=float), np.asarray(poses, dtype=float)
     except (TypeError, ValueError):
-        raise ComponentError(f"{where} returned {type(result).__name__}; expected (stamps (N,), T_map_base (N, 4, 4))") \
-            from None
+        raise ComponentError(f"{where} returned {type(result).__name__}; "
+                             "expected (stamps (N,), T_map_base (N, 4, 4))") from None
     if stamps.ndim != 1 or poses.shape != (len(stamps), 4, 4):
         raise ComponentError(f"{where} returned stamps of shape {stamps.shape} and poses of shape {poses.shape}; "
                              "expected (N,) and (N, 4, 4)")

@@ -423,8 +423,9 @@ class ObjectStore:
             if label_of([obs], self.policy) is None:
                 return None
             if obs.cls not in self.dims:
-                raise ComponentError(f"a detection of class {obs.cls!r} at t={float(obs.stamp):.3f} s: no cuboid size for "
-                                     f"that class; the detector's classes must be among the map's {sorted(self.dims)}")
+                raise ComponentError(f"a detection of class {obs.cls!r} at t={float(obs.stamp):.3f} s: no cuboid "
+                                     f"size for that class; the detector's classes must be among the map's "
+                                     f"{sorted(self.dims)}")
             obj = MapObject(self.next_id(), obs.cls, np.array(obs.xyz, dtype=float),
                             np.array(obs.quat_xyzw, dtype=float), self.dims[obs.cls].copy(), obs.stamp, obs.stamp)
             self.objects[obj.id] = obj

@@ -18,8 +18,8 @@ from stack.errors import OutputError
 from stack.io import (atomic_path, clean_stale, output_dir, staging_entries, strict, strict_json, write_bytes,
                       write_json, write_text)
 
-__all__ = ["atomic_path", "check_new_output", "check_output_path", "clean_stale", "edited_objects", "output_dir", "same_or_inside", "staging_entries",
-           "strict", "strict_json", "write_bytes", "write_json", "write_text"]
+__all__ = ["atomic_path", "check_new_output", "check_output_path", "clean_stale", "edited_objects", "output_dir",
+           "same_or_inside", "staging_entries", "strict", "strict_json", "write_bytes", "write_json", "write_text"]
 
 
 def same_or_inside(a: str | os.PathLike, b: str | os.PathLike) -> bool:

@@ -164,8 +164,8 @@ def run_odometry(scenario=None, seed: int | None = None, out_dir: str | os.PathL
                          scans, pipe.registered)
         registered = len(check_trajectory(odo, odo.trajectory())[0])
         if registered < 2:
-            raise InputDataError(f"{ep.sc.name}: {registered} scan(s) registered in {ep.duration:g} s; nothing to score "
-                                 "(a longer --duration, or an odometry that registers the scans)")
+            raise InputDataError(f"{ep.sc.name}: {registered} scan(s) registered in {ep.duration:g} s; nothing to "
+                                 "score (a longer --duration, or an odometry that registers the scans)")
         result = pipe.finish()
         stamps, T_odom, T_map_base = result.stamps, result.T_map_base_odometry, result.T_map_base
         gt = ep.T_world_base_at(stamps)

@@ -543,8 +543,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         if not len(stamps):  # no map frame, so nothing to place or score
             fix = "its [sensors] has lidar = false" if not ep.sc.sensors.lidar else \
                 "a longer --duration, fewer dropped scans, or an odometry that registers them"
-            raise InputDataError(f"{ep.sc.name}: the odometry registered no LiDAR scan in {ep.duration:g} s, so there is "
-                                 f"no map ({fix})")
+            raise InputDataError(f"{ep.sc.name}: the odometry registered no LiDAR scan in {ep.duration:g} s, so "
+                                 f"there is no map ({fix})")
         T_world_map = ep.T_world_base_at(stamps[0])  # map = base_link at the first registered scan
         odo = score_trajectory(stamps, poses, ep, T_world_map)
         if lc is not None:  # the closed-loop trajectory replaced the odometry's; labels were placed again

@@ -124,7 +124,8 @@ def test_score_never_writes_its_scores_over_a_saved_run(tmp_path, capsys):
     for target in (run / "report.json", run / "labels.json", run / "scores.json"):
         assert main(["score", str(run), "--out", str(target)]) == 2
         err = capsys.readouterr().err.strip()
-        assert err == f"dopeslam score: --out {target}: is (or holds, or lies inside) the input {run}; choose another path"
+        assert err == (f"dopeslam score: --out {target}: is (or holds, or lies inside) the input {run}; "
+                       "choose another path")
     assert {p.name: p.read_bytes() for p in run.iterdir()} == before
     assert main(["score", str(run), "--out", str(tmp_path / "scores.json")]) == 0
     assert (tmp_path / "scores.json").is_file()
