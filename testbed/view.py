@@ -42,6 +42,30 @@ class ViewError(RuntimeError):
     """The live view cannot start (no Rerun SDK, no viewer)."""
 
 
+VIEWER_PORT = 9876  # where rr.spawn starts the viewer, or finds one already running
+
+
+def _viewer_listening(port: int = VIEWER_PORT) -> bool:
+    """Whether a viewer (or anything) already listens on this machine's ``port``."""
+    import socket
+
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+    except OSError:
+        return False
+    return True
+
+
+def _has_display() -> bool:
+    """Whether a window can open: on Linux an X11 or Wayland display is named; elsewhere assumed."""
+    import os
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return True
+    return any(os.environ.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"))
+
+
 def _rerun():
     try:
         import rerun as rr
@@ -65,11 +89,19 @@ class RerunView:
         if save:
             sinks.append(rr.FileSink(str(save)))
         if spawn:
+            if not _viewer_listening() and not _has_display():  # the viewer would start, find no screen and quit
+                raise ViewError(f"no display to open the Rerun viewer on (DISPLAY and WAYLAND_DISPLAY are unset) and "
+                                f"no viewer listening on port {VIEWER_PORT}; use --view-save FILE.rrd and open it "
+                                "with `rerun FILE.rrd` where there is a screen")
+            import inspect
+
+            # this recording's spawn: rr.spawn() alone asks the global recording, which is off, and does nothing
+            mine = {"recording": self.rec} if "recording" in inspect.signature(rr.spawn).parameters else {}
             try:
-                rr.spawn(connect=False, hide_welcome_screen=True)
+                rr.spawn(connect=False, hide_welcome_screen=True, port=VIEWER_PORT, **mine)
             except Exception as exc:  # no viewer binary, no display
-                raise ViewError(f"cannot start the Rerun viewer ({exc}); use --view-save FILE.rrd and open it "
-                                f"later with `rerun FILE.rrd`") from None
+                raise ViewError(f"cannot start the Rerun viewer ({str(exc).strip().splitlines()[0]}); "
+                                "use --view-save FILE.rrd and open it later with `rerun FILE.rrd`") from None
             sinks.append(rr.GrpcSink())
         self.rec.set_sinks(*sinks)
         self.save_path = save

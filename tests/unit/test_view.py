@@ -39,3 +39,30 @@ def test_detections_and_store_round_trip(tmp_path):
     assert rec["/camera/image/detections"]["rows"] == 1
     assert rec["/world/lidar/scan"]["rows"] == 1 and rec["/world/robot/estimate"]["rows"] == 1
     assert {"Boxes2D:labels", "Boxes2D:colors"} <= rec["/camera/image/detections"]["components"]
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="the display check is Linux's")
+def test_no_display_and_no_viewer_is_one_line_and_the_spawn_is_this_recording_s(monkeypatch, tmp_path):
+    """Without a screen the viewer would start, fail to open a window and quit, and the run would end
+    in a traceback once the stream gave up (15 s later). With one, the viewer is spawned for this
+    recording: ``rr.spawn()`` without it asks the global recording, which is off, and does nothing."""
+    import rerun as rr
+
+    import testbed.view as view
+
+    for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(view, "_viewer_listening", lambda port=view.VIEWER_PORT: False)
+    with pytest.raises(ViewError, match="^no display to open the Rerun viewer on .* use --view-save FILE.rrd"):
+        RerunView(spawn=True)
+    spawned = []
+
+    def spawn(*, connect=True, hide_welcome_screen=False, port=9876, recording=None):
+        spawned.append(recording)
+
+    monkeypatch.setenv("DISPLAY", ":0")
+    monkeypatch.setattr(rr, "spawn", spawn)
+    monkeypatch.setattr(rr, "GrpcSink", lambda: rr.FileSink(str(tmp_path / "viewer.rrd")))  # no viewer here
+    live = RerunView(spawn=True)
+    live.close()
+    assert spawned == [live.rec]
