@@ -128,7 +128,7 @@ _GLYPHS = ("R", "L", "T", "B", "F", "K")
 
 
 def cache_dir() -> Path:
-    d = Path(os.environ.get("DOPESLAM_CACHE", Path.home() / ".cache" / "dopeslam")) / "assets"
+    d = Path(os.environ.get("DOPESLAM_CACHE") or Path.home() / ".cache" / "dopeslam").expanduser() / "assets"
     d.mkdir(parents=True, exist_ok=True)
     return d
 

@@ -182,3 +182,24 @@ def test_bad_option_values_are_one_line_and_exit_2(capsys, tmp_path, monkeypatch
     rc, line = _cli(capsys, *argv, "--out", "out") if argv[0] != "record" else _cli(capsys, *argv)
     assert rc == 2 and line.startswith(f"dopeslam {argv[0]}: {says}"), line
     assert not any(tmp_path.iterdir())
+
+
+def test_a_cache_folder_that_cannot_be_made_is_one_line_before_any_work(capsys, tmp_path, monkeypatch):
+    blocker = tmp_path / "notes"
+    blocker.write_text("x")
+    monkeypatch.setenv("DOPESLAM_CACHE", str(blocker / "cache"))
+    rc, line = _cli(capsys, "run", "--out", str(tmp_path / "out"))
+    assert rc == 2 and line == f"dopeslam run: environment variable DOPESLAM_CACHE: {blocker / 'cache'}: {blocker} is a " \
+                               "file, not a folder"
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_cache_folder_expands_a_home_tilde(monkeypatch, tmp_path):
+    """The object textures go where the rest of the cache goes, not into a folder named '~'."""
+    from sim.objects import cache_dir
+    from testbed.settings import cache_dir as harness_cache
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.setenv("DOPESLAM_CACHE", "~/dopeslam-cache")
+    assert cache_dir() == tmp_path / "dopeslam-cache" / "assets" and cache_dir().is_dir()
+    assert harness_cache("assets", create=False) == cache_dir()
