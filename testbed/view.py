@@ -100,7 +100,8 @@ class RerunView:
             try:
                 rr.spawn(connect=False, hide_welcome_screen=True, port=VIEWER_PORT, **mine)
             except Exception as exc:  # no viewer binary, no display
-                raise ViewError(f"cannot start the Rerun viewer ({str(exc).strip().splitlines()[0]}); "
+                why = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+                raise ViewError(f"cannot start the Rerun viewer ({why}); "
                                 "use --view-save FILE.rrd and open it later with `rerun FILE.rrd`") from None
             sinks.append(rr.GrpcSink())
         self.rec.set_sinks(*sinks)
