@@ -513,7 +513,8 @@ class BagReader:
                                       lambda n: "depth" in n and "aligned" in n)
         if self.require_camera and not (self.rgb_topic or self.depth_topic):
             raise MissingTopicError(self.path, "camera image", f"{T.RGB} or {T.DEPTH} (sensor_msgs/Image)",
-                                    self.topics, "pass --rgb-topic and/or --depth-topic")
+                                    self.topics, "pass --rgb-topic and/or --depth-topic, or --odometry-only for the "
+                                    "trajectory alone")
         if self.rgb_topic or self.depth_topic:
             candidates = [t for t in (self._sibling_info(self.rgb_topic), T.RGB_INFO,
                                       self._sibling_info(self.depth_topic), T.DEPTH_INFO) if t]
