@@ -17,6 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from stack.dope_fpr import DopeDetector, cuboid_points
+from stack.errors import InputDataError
 from stack.messages import CameraFrame, CameraInfo
 
 log = logging.getLogger(__name__)
@@ -32,7 +33,7 @@ def load_shard_frames(data_dir, shard_ids, classes):
             meta = json.loads(npz.with_suffix(".json").read_text())
             arr = np.load(npz)
         except (OSError, ValueError) as exc:
-            raise ValueError(f"{npz}: unreadable DOPE data shard ({exc})") from exc
+            raise InputDataError(f"{npz}: unreadable DOPE data shard ({exc})") from exc
         info = CameraInfo(int(meta["width"]), int(meta["height"]), np.array(meta["K"], dtype=float))
         for i, image in enumerate(meta["images"]):
             truths = []

@@ -33,6 +33,7 @@ import torch
 
 from stack.dope.net import N_BELIEF, STRIDE, DopeNet, DopeNetConfig, expand_stages, save_weights
 from stack.dope.targets import make_targets, to_input_px
+from stack.errors import InputDataError
 from stack.io import atomic_path
 
 log = logging.getLogger(__name__)
@@ -141,7 +142,7 @@ class ShardData:
                 rgb = arrays["rgb"]
                 depth = arrays["depth_mm"] if self.load_depth else None
             except (OSError, ValueError, KeyError) as exc:
-                raise ValueError(f"{npz}: unreadable DOPE data shard ({exc})") from exc
+                raise InputDataError(f"{npz}: unreadable DOPE data shard ({exc})") from exc
             if self.K is None:
                 self.K = np.array(meta["K"], dtype=float)
             for i, image in enumerate(meta["images"]):
@@ -391,6 +392,10 @@ def train(cfg: TrainConfig) -> dict:
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    data = ShardData(cfg.data_dir, cfg.classes, cfg.min_visible, load_depth=cfg.input == "depth")
+    avail = data.available()
+    if not avail:  # before anything is made
+        raise InputDataError(f"{cfg.data_dir}: no shard_*.npz/.json pairs (run `dopeslam datagen` first)")
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
@@ -411,8 +416,14 @@ def train(cfg: TrainConfig) -> dict:
         rng = np.random.default_rng([cfg.seed, step])
         log.info("resumed %s at step %d", ckpt_path, step)
     elif cfg.init_from:
-        blob = torch.load(cfg.init_from, map_location="cpu", weights_only=True)
-        state = {k: v.float() for k, v in (blob.get("state_dict") or blob.get("model")).items()}
+        try:  # tensors only: nothing in the file runs
+            blob = torch.load(cfg.init_from, map_location="cpu", weights_only=True)
+            state = {k: v.float() for k, v in (blob.get("state_dict") or blob.get("model")).items()}
+        except FileNotFoundError:
+            raise InputDataError(f"{cfg.init_from}: file not found (--init-from)") from None
+        except Exception as exc:  # noqa: BLE001 - torch's unpickler raises many kinds for foreign bytes
+            why = (str(exc).strip().splitlines() or [type(exc).__name__])[0].split(". ")[0][:120]
+            raise InputDataError(f"{cfg.init_from}: expected DOPE weights or a training checkpoint ({why})") from None
         n_src = 1 + max(int(k.split(".")[1]) for k in state if k.startswith("stages."))
         if n_src != cfg.stages:
             # a shorter cascade: its last stage is repeated (expand_stages) to reach cfg.stages
@@ -423,10 +434,6 @@ def train(cfg: TrainConfig) -> dict:
         model.load_state_dict(state)
         log.info("initialised from %s (%d stages -> %d)", cfg.init_from, n_src, cfg.stages)
 
-    data = ShardData(cfg.data_dir, cfg.classes, cfg.min_visible, load_depth=cfg.input == "depth")
-    avail = data.available()
-    if not avail:
-        raise FileNotFoundError(f"{cfg.data_dir}: no shard_*.npz/.json pairs (run `dopeslam datagen` first)")
     val_ids = set(avail[:cfg.val_shards])
     val = ShardData(cfg.data_dir, cfg.classes, cfg.min_visible, load_depth=cfg.input == "depth")
     val.refresh(only=val_ids)

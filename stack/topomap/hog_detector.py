@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from stack.dope.colour_names import ColourModel, box_histogram
+from stack.errors import InputDataError
 from stack.io import atomic_path
 
 log = logging.getLogger(__name__)
@@ -482,7 +483,7 @@ def load_shard_images(data_dir: str | Path, shards: list[int] | None = None, cla
             a = np.load(npz)
             rgb, seg = a["rgb"], a["seg"]
         except (OSError, ValueError, KeyError) as exc:
-            raise ValueError(f"{npz}: unreadable DOPE data shard ({exc})") from exc
+            raise InputDataError(f"{npz}: unreadable DOPE data shard ({exc})") from exc
         for i, image in enumerate(meta["images"]):
             boxes, cls, vis = [], [], []
             for k, o in enumerate(image["objects"]):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 
 from stack.errors import UsageError
 
@@ -16,6 +17,10 @@ def _datagen(args) -> int:
 
     if not 0.0 <= args.slim_stand_prob <= 1.0:
         raise UsageError(f"--slim-stand-prob: expected a share from 0 to 1, got {args.slim_stand_prob}")
+    for option, value, low in (("--images", args.images, 1), ("--shard-size", args.shard_size, 1),
+                               ("--workers", args.workers, 1), ("--width", args.width, 32), ("--height", args.height, 24)):
+        if value < low:
+            raise UsageError(f"{option}: expected at least {low}, got {value}")
     cfg = DatagenConfig(out_dir=Path(args.out), n_images=args.images, shard_size=args.shard_size, seed=args.seed,
                         workers=args.workers, width=args.width, height=args.height,
                         slim_stand_prob=args.slim_stand_prob)
@@ -46,13 +51,26 @@ def parse_class_weights(items) -> dict:
 def _train(args) -> int:
     from stack.dope.train import TrainConfig, train
 
-    window = tuple(float(v) for v in args.depth_window.split(",")) if args.depth_window else (0.0, 0.0)
+    window = _numbers(args.depth_window, "--depth-window", "NEAR,FAR metres with 0 <= NEAR < FAR", 2,
+                      lambda v: 0 <= v[0] < v[1]) if args.depth_window else (0.0, 0.0)
+    decay = _numbers(args.lr_decay, "--lr-decay", "step numbers such as 5000,8000", None,
+                     lambda v: all(x >= 1 and x == int(x) for x in v)) if args.lr_decay else ()
+    for option, value, ok, expected in (
+            ("--batch", args.batch, args.batch >= 1, "at least 1"),
+            ("--crop", args.crop, args.crop >= 32 and args.crop % 8 == 0, "a multiple of 8, at least 32"),
+            ("--lr", args.lr, math.isfinite(args.lr) and args.lr > 0, "a number > 0"),
+            ("--width", args.width, math.isfinite(args.width) and args.width > 0, "a multiplier > 0"),
+            ("--stages", args.stages, args.stages >= 1, "at least 1"),
+            ("--steps", args.steps, args.steps >= 1, "at least 1"),
+            ("--minutes", args.minutes, args.minutes > 0, "a number > 0")):
+        if not ok:
+            raise UsageError(f"{option}: expected {expected}, got {value}")
     cfg = TrainConfig(data_dir=args.data, out_dir=args.out, input=args.input, width=args.width, stages=args.stages,
                       batch=args.batch, crop=(args.crop, args.crop), lr=args.lr, max_steps=args.steps,
                       max_minutes=args.minutes, checkpoint_minutes=args.checkpoint_minutes, seed=args.seed,
                       init_from=args.init_from or "", depth_window=window, threads=args.threads,
                       class_weights=parse_class_weights(args.class_weight),
-                      lr_decay_steps=tuple(int(s) for s in args.lr_decay.split(",")) if args.lr_decay else ())
+                      lr_decay_steps=tuple(int(v) for v in decay))
     summary = train(cfg)
     print(json.dumps(summary, indent=1))
     return 0
@@ -68,10 +86,25 @@ def _detector(args):
                         depth_refine=not args.no_depth_refine)
 
 
+def _numbers(text: str, option: str, expected: str, count: int | None, ok) -> tuple[float, ...]:
+    """``text``'s comma-separated numbers (``count`` of them, None: one or more) for which ``ok`` holds,
+    else a UsageError naming ``option``."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or (count is not None and len(values) != count) or not all(map(math.isfinite, values)) \
+            or not ok(values):
+        raise UsageError(f"{option}: expected {expected}, got {text!r}")
+    return values
+
+
 def _shards(args) -> list[int]:
     if args.shards:
-        a, b = (int(v) for v in args.shards.split(":"))
-        return list(range(a, b))
+        a, sep, b = args.shards.partition(":")
+        if not (sep and a.strip().isdigit() and b.strip().isdigit() and int(a) < int(b)):
+            raise UsageError(f"--shards: expected A:B, shard numbers with A < B (e.g. 0:2), got {args.shards!r}")
+        return list(range(int(a), int(b)))
     return [0, 1]  # the training run's held-out shards
 
 
@@ -88,9 +121,10 @@ def _evaluate(args) -> int:
         print(f"{s:>6}  {r['instances']:>9}  {100 * r['detection_rate']:7.1f}%  {100 * r['detection_rate_fpr']:7.1f}%"
               f"  {pe:>14}  {100 * r['add_pass_rate']:7.1f}%  {100 * r['precision']:8.1f}%  {100 * r['precision_fpr']:12.1f}%")
     if args.out:
-        with open(args.out, "w") as f:
-            json.dump({"weights": str(det.weights_path), "input": args.input, "data": args.data,
-                       "shards": _shards(args), "per_stages": table}, f, indent=1)
+        from testbed.io import write_json
+
+        write_json(args.out, {"weights": str(det.weights_path), "input": args.input, "data": args.data,
+                              "shards": _shards(args), "per_stages": table}, indent=1)
     return 0
 
 

@@ -176,6 +176,15 @@ def test_a_scenario_that_is_a_folder_or_not_text_is_one_line(capsys, tmp_path):
     (["evaluate-policy", "newest", "--episodes", "1"], "unknown policy 'newest'"),
     (["record", "--bag", "episode", "--format", "ros1"], "--bag episode: a ROS 1 bag's name must end in .bag"),
     (["datagen", "--slim-stand-prob", "2"], "--slim-stand-prob: expected a share from 0 to 1, got 2.0"),
+    (["datagen", "--images", "0"], "--images: expected at least 1, got 0"),
+    (["datagen", "--shard-size", "0"], "--shard-size: expected at least 1, got 0"),
+    (["datagen", "--width", "3"], "--width: expected at least 32, got 3"),
+    (["train", "--data", "d", "--crop", "100"], "--crop: expected a multiple of 8, at least 32, got 100"),
+    (["train", "--data", "d", "--depth-window", "2,1"], "--depth-window: expected NEAR,FAR metres with 0 <= NEAR < FAR"),
+    (["train", "--data", "d", "--lr-decay", "soon"], "--lr-decay: expected step numbers such as 5000,8000"),
+    (["train", "--data", "d"], "d: no shard_*.npz/.json pairs (run `dopeslam datagen` first)"),
+    (["dope-eval", "--data", "d", "--shards", "5:2"], "--shards: expected A:B, shard numbers with A < B"),
+    (["calibrate-fpr", "--data", "d"], "d/shard_00000.npz: unreadable DOPE data shard"),
 ])
 def test_bad_option_values_are_one_line_and_exit_2(capsys, tmp_path, monkeypatch, argv, says):
     monkeypatch.chdir(tmp_path)
