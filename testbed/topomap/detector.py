@@ -190,9 +190,12 @@ def plot_pr(res: dict, path: Path, title: str) -> None:
 def run_eval(out: Path, data_dir: Path = DEFAULT_DATA, max_images: int | None = None, streams: bool = True) -> dict:
     from testbed.io import write_json
 
+    _, test_shards = shard_split(data_dir)
+    if not test_shards:  # before the streams are built: they take minutes
+        raise InputError(f"{data_dir}: no held-out data shards (every fifth: shard_00004, shard_00009, ... .npz + "
+                         ".json); generate them with `dopeslam datagen`")
     out.mkdir(parents=True, exist_ok=True)
     det = HogDetector.load()
-    _, test_shards = shard_split(data_dir)
     sets = {"heldout_shards": load_shard_images(data_dir, test_shards, CLASSES)}
     if streams:
         sets["scenario_streams"] = test_images_from_streams()

@@ -29,7 +29,7 @@ import numpy as np
 
 from stack.topomap.mono_pose import METHODS, Features, MonoConfig, detect_features
 from stack.topomap.mono_vo import run_sequence
-from testbed.topomap import print_saved_report
+from testbed.topomap import InputError, print_saved_report
 from testbed.topomap.stream import CameraStream, cache_root, camera_stream
 
 log = logging.getLogger(__name__)
@@ -242,6 +242,8 @@ def run_args(args) -> int:
     if args.table is not None:
         print_saved_report(args.table, f"--table {args.table}", "a pose_eval.json", print_tables)
         return 0
+    if args.runs < 1:
+        raise InputError(f"--runs: expected at least 1 RANSAC seed per method, got {args.runs}")
     report = run(args.scenarios.split(","), args.runs, args.out)
     print_tables(report)
     print(f"wrote {args.out}/pose_eval.json and fig15-17 PNGs")
