@@ -119,15 +119,20 @@ def read_user_text(path: str | os.PathLike, error: type[Exception], expected: st
         raise error(f"{path}: not UTF-8 text (byte {exc.start}); expected {expected}") from None
 
 
+def nearest_existing(path: str | os.PathLike) -> Path:
+    """``path`` itself or the nearest path above it that exists (a folder, or the file in the way)."""
+    path = Path(path)
+    while not os.path.lexists(path) and path != path.parent:
+        path = path.parent
+    return path
+
+
 def _make_parent(path: Path) -> None:
     """``path.parent`` and the folders above it, or an OutputError when a file stands in the way."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
-        blocker = path.parent
-        while not os.path.lexists(blocker) and blocker != blocker.parent:
-            blocker = blocker.parent
-        raise OutputError(f"{path}: {blocker} is a file, not a folder") from None
+        raise OutputError(f"{path}: {nearest_existing(path.parent)} is a file, not a folder") from None
 
 
 # --- folders --------------------------------------------------------------------------------------

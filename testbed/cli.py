@@ -210,9 +210,10 @@ def check_output_args(args) -> None:
             if kind == "bag":  # a ROS 1 bag is one NAME.bag file, a ROS 2 bag a folder
                 kind = "file" if Path(given[attr]).suffix == ".bag" else "folder"
             check_output_path(given[attr], option, kind)
-    cache = os.environ.get("DOPESLAM_CACHE")  # every episode writes its object textures there
-    if cache:
-        check_output_path(Path(cache).expanduser(), "environment variable DOPESLAM_CACHE:")
+    from testbed.settings import ENV_CACHE, cache_dir
+
+    if os.environ.get(ENV_CACHE):  # every episode writes its object textures there
+        check_output_path(cache_dir("", create=False), f"environment variable {ENV_CACHE}:")
 
 
 def main(argv: list[str] | None = None) -> int:

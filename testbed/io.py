@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Iterable
 
 from stack.errors import OutputError
-from stack.io import (atomic_path, clean_stale, output_dir, staging_entries, strict, strict_json, write_bytes,
-                      write_json, write_text)
+from stack.io import (atomic_path, clean_stale, nearest_existing, output_dir, staging_entries, strict, strict_json,
+                      write_bytes, write_json, write_text)
 
 __all__ = ["atomic_path", "check_new_output", "check_output_path", "clean_stale", "edited_objects", "output_dir",
            "same_or_inside", "staging_entries", "strict", "strict_json", "write_bytes", "write_json", "write_text"]
@@ -53,9 +53,7 @@ def check_output_path(path: str | os.PathLike, option: str, kind: str = "folder"
         raise OutputError(f"{where}: exists and is not a folder; choose another")
     if kind == "file" and path.is_dir():
         raise OutputError(f"{where}: is a folder; expected a file name")
-    parent = path.parent
-    while not os.path.lexists(parent) and parent != parent.parent:
-        parent = parent.parent
+    parent = nearest_existing(path.parent)
     if not parent.is_dir():
         raise OutputError(f"{where}: {parent} is a file, not a folder")
     try:

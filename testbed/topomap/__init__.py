@@ -16,16 +16,16 @@ def print_saved_report(path, where: str, expected: str, printer) -> None:
     import contextlib
     import io
     import json
-    from pathlib import Path
 
+    from stack.io import read_user_text
+
+    text = read_user_text(path, InputError, expected)  # missing, a folder, not UTF-8: one line naming the file
     try:
-        report = json.loads(Path(path).read_bytes().decode("utf-8"))
-        with contextlib.redirect_stdout(io.StringIO()) as text:
+        report = json.loads(text)
+        with contextlib.redirect_stdout(io.StringIO()) as tables:
             printer(report)
-    except OSError as exc:
-        raise InputError(f"{where}: expected {expected}: {exc.strerror}") from None
     except KeyError as exc:
         raise InputError(f"{where}: expected {expected}: no field {exc}") from None
     except (ValueError, TypeError, AttributeError, IndexError) as exc:
         raise InputError(f"{where}: expected {expected}: {exc}") from None
-    print(text.getvalue(), end="")
+    print(tables.getvalue(), end="")
