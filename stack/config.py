@@ -100,9 +100,10 @@ class DetectorConfig(BaseModel):
     fold_stages: bool = Field(True, description="run each refinement stage's first convolution on the previous "
                               "stage's last hidden layer instead of its maps (the same maps to the last float bits, "
                               "about a fifth fewer multiply-adds)")
-    precision: Literal["fp32", "bf16"] = Field("fp32", description="the network's arithmetic: bf16 halves its time "
-                                               "on a CPU with native bfloat16 (AVX512-BF16, AMX; elsewhere it runs "
-                                               "fp32), and its maps are not always fp32's (docs/speed.md)")
+    precision: Literal["fp32", "bf16", "int8"] = Field(
+        "fp32", description="the network's arithmetic: bf16 halves its time on a CPU with native bfloat16 "
+        "(AVX512-BF16, AMX; elsewhere it runs fp32); int8 runs its convolutions in 8-bit integers on any x86 CPU, "
+        "at the calibration beside the weights (NAME_int8.json); neither's maps are always fp32's (docs/speed.md)")
 
     def keyframes(self):
         """The :class:`stack.keyframes.KeyframeSettings` of ``keyframe_*`` (None while off)."""

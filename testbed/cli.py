@@ -188,7 +188,7 @@ def check_scenario_args(args) -> None:
 
 
 # commands whose --out names a file (every other command's --out is a folder)
-FILE_OUT_COMMANDS = {"config", "score", "dope-export", "dope-eval", "calibrate-fpr"}
+FILE_OUT_COMMANDS = {"config", "score", "dope-export", "dope-eval", "calibrate-fpr", "calibrate-int8"}
 
 
 def check_output_args(args) -> None:

@@ -191,6 +191,7 @@ class FoldedDopeNet(nn.Module):
             self.on_hidden.append(conv_h)
             self.on_bias.append(conv_b)
             self.hidden.append(nn.Sequential(*layers[1:-1]))  # the first layer's ReLU onwards
+        self._bias_maps: dict = {}  # (stage, h, w, dtype, device) -> on_bias over an image of ones
         self.eval()
 
     @property
@@ -206,9 +207,16 @@ class FoldedDopeNet(nn.Module):
         h = self.hidden[0](feats)
         maps = self.out[0](h)
         outs = [(maps[:, :self.n_belief], maps[:, self.n_belief:])]
-        ones = torch.ones_like(feats[:1, :1])  # the image the previous maps' bias is convolved over
+        ones = None
         for i in range(1, n):
-            z = self.on_features[i - 1](feats) + self.on_hidden[i - 1](h) + self.on_bias[i - 1](ones)
+            key = (i, feats.shape[-2], feats.shape[-1], feats.dtype, feats.device)
+            bias = self._bias_maps.get(key)
+            if bias is None:  # the same for every image of a size: computed once
+                if ones is None:
+                    ones = torch.ones_like(feats[:1, :1])  # the image the previous maps' bias is convolved over
+                with torch.no_grad():
+                    bias = self._bias_maps[key] = self.on_bias[i - 1](ones)
+            z = self.on_features[i - 1](feats) + self.on_hidden[i - 1](h) + bias
             h = self.hidden[i](z)
             maps = self.out[i](h)
             outs.append((maps[:, :self.n_belief], maps[:, self.n_belief:]))

@@ -147,6 +147,38 @@ def _calibrate(args) -> int:
     return 0
 
 
+def _calibrate_int8(args) -> int:
+    from pathlib import Path
+
+    import torch
+
+    from stack.errors import InputDataError
+
+    from stack.dope import int8
+    from stack.dope.evaluate import load_shard_frames
+    from stack.dope_fpr import file_sha256
+
+    det = _detector(args)
+    out = args.out or str(int8.calibration_path(det.weights_path))
+    shards = _shards(args) if args.shards else sorted(
+        int(p.stem[6:]) for p in Path(args.data).glob("shard_*.npz") if p.stem[6:].isdigit())
+    if not shards:
+        raise InputDataError(f"{args.data}: no shard_*.npz/.json pairs (run `dopeslam datagen` first)")
+
+    def batches():
+        for frame, _ in load_shard_frames(args.data, shards, det.classes):
+            x, _ = det._inputs(frame)
+            if len(x):
+                yield torch.from_numpy(x)
+
+    cal = int8.calibrate(det.model.to(memory_format=torch.contiguous_format), batches(),
+                         meta={"weights_sha256": file_sha256(det.weights_path), "input": args.input,
+                               "data": args.data, "shards": shards})
+    int8.save(out, cal)
+    print(f"int8 calibration from {cal['inputs']} network inputs ({len(cal['blocks'])} blocks) written to {out}")
+    return 0
+
+
 def _export(args) -> int:
     from stack.dope.net import expand_stages, load_weights, save_weights
 
@@ -203,7 +235,9 @@ def register(subparsers) -> None:
     x.set_defaults(func=_export)
 
     for name, func, helptext in (("dope-eval", _evaluate, "DOPE accuracy per stage count on held-out datagen shards"),
-                                 ("calibrate-fpr", _calibrate, "calibrate FPR belief-sum thresholds per class and stage count")):
+                                 ("calibrate-fpr", _calibrate, "calibrate FPR belief-sum thresholds per class and stage count"),
+                                 ("calibrate-int8", _calibrate_int8,
+                                  "calibrate the network's int8 activation scales (precision = int8) on datagen shards")):
         e = subparsers.add_parser(name, help=helptext)
         e.add_argument("--data", required=True, help="directory of datagen shards")
         e.add_argument("--shards", default="", help="A:B shard index range (default: the held-out shards 0:2)")
@@ -218,6 +252,9 @@ def register(subparsers) -> None:
             e.add_argument("--fallback-recall", type=float, default=0.95,
                            help="where the target is out of reach, keep this share of true detections")
             e.add_argument("--out", required=True, help="thresholds JSON (e.g. stack/weights/fpr_thresholds_rgb.json)")
+        elif name == "calibrate-int8":
+            e.add_argument("--out", default="", help="calibration JSON (default: NAME_int8.json beside the weights, "
+                                                     "where precision = int8 looks for it)")
         else:
             e.add_argument("--thresholds", default="", help="FPR thresholds JSON (default: beside the weights)")
             e.add_argument("--out", default="", help="write the table as JSON")

@@ -185,6 +185,7 @@ def test_a_scenario_that_is_a_folder_or_not_text_is_one_line(capsys, tmp_path):
     (["train", "--data", "d"], "d: no shard_*.npz/.json pairs (run `dopeslam datagen` first)"),
     (["dope-eval", "--data", "d", "--shards", "5:2"], "--shards: expected A:B, shard numbers with A < B"),
     (["calibrate-fpr", "--data", "d"], "d/shard_00000.npz: unreadable DOPE data shard"),
+    (["calibrate-int8", "--data", "d"], "d: no shard_*.npz/.json pairs (run `dopeslam datagen` first)"),
     (["pose-eval", "--runs", "0"], "--runs: expected at least 1 RANSAC seed per method, got 0"),
     (["hog-detector", "eval", "--data", "d"], "d: no held-out data shards"),
 ])
