@@ -23,6 +23,9 @@ Backends:
   (``stack.dope.net.FoldedDopeNet``): as the detector runs it by default;
 - ``torch channels-last bf16``: as ``DopeDetector(precision="bf16")`` runs it (folded), weights and input
   in bfloat16; only on a CPU with native bfloat16 (AVX512-BF16 or AMX);
+- ``torch int8``: as ``DopeDetector(precision="int8")`` runs it (folded, its convolution blocks quantised
+  at the calibration beside the weights: ``stack.dope.int8``); only where PyTorch has its x86 quantised
+  kernels and the weights have a calibration;
 - ``onnxruntime``: the network exported with ``torch.onnx.export(..., dynamo=False)`` (opset 17, batch,
   height and width free) to a temporary folder and run by ONNX Runtime's CPUExecutionProvider, every graph
   optimisation on, idle threads sleeping; ``onnxruntime spin`` lets them spin-wait (ONNX Runtime's
@@ -212,6 +215,22 @@ def main(argv=None) -> int:
         xt = torch.from_numpy(x).to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
         return [(b.float().numpy(), a.float().numpy()) for b, a in model_bf16(xt, S)]
 
+    from stack.dope import int8
+
+    int8_det = None
+    if int8.available():
+        try:
+            int8_det = DopeDetector(weights=args.weights, input=args.input, stages=args.stages, dims=dims, threads=1,
+                                    precision="int8")
+        except int8.Int8Error as exc:
+            notes.append(f"int8 skipped: {exc}")
+    else:
+        notes.append("int8 skipped: this PyTorch has no x86 quantised kernels")
+
+    @torch.inference_mode()
+    def int8_fn(x):  # as DopeDetector(precision="int8") runs it
+        return [(b.numpy(), a.numpy()) for b, a in int8_det.model(torch.from_numpy(x), S)]
+
     cache = tempfile.TemporaryDirectory(prefix="dope-onnx-")
     if ort_version:
         t0 = time.perf_counter()
@@ -224,6 +243,8 @@ def main(argv=None) -> int:
         backends.append(("torch channels-last folded", th, folded_fn, 0.0))
         if bf16_native():
             backends.append(("torch channels-last bf16", th, bf16_fn, 0.0))
+        if int8_det is not None:
+            backends.append(("torch int8", th, int8_fn, 0.0))
         for spin in ((False, True) if th > 1 else (False,)) if ort_version else ():
             t0 = time.perf_counter()
             sess = ort_session(onnx_file, th, spin)
