@@ -489,7 +489,8 @@ def load_or_build(spec: PerceptionSpec, detector_factory: DetectorFactory | None
 def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
     """Identity of the real DOPE detector: input, hashes of its weights, FPR thresholds and colour-model
     files, the version of the FPR rule (the FPR verdicts are part of the cached perception), and the
-    network's precision when it is not fp32 (fp32 caches keep the identity they had before the setting)."""
+    network's precision when it is not fp32 (fp32 caches keep the identity they had before the setting), with
+    int8's calibration file's hash."""
     path = Path(getattr(detector, "weights_path", None) or dope_weights_path(input_mode, weights))
     if not path.exists():
         raise PerceptionCacheError(f"{path}: no DOPE weights for input {input_mode!r} (train them with "
@@ -511,6 +512,11 @@ def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
     precision = getattr(detector, "precision", None) or effective_precision()
     if precision != "fp32":
         ident += f":{precision}"
+    if precision == "int8":  # the maps follow the activation scales too
+        from stack.dope.int8 import calibration_path
+
+        cal = Path(getattr(detector, "int8_calibration", None) or calibration_path(path))
+        ident += f"{file_sha256(cal, 12) if cal.exists() else 'none'}"
     return ident
 
 

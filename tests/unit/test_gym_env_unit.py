@@ -143,6 +143,16 @@ def test_real_detector_identity_changes_with_weights_thresholds_and_colour_model
     e, f = dope_detector_id("rgb", w, Fp32()), dope_detector_id("rgb", w, Bf16())
     assert e == d and f == d + ":bf16"  # bf16 maps are another cache; fp32 (the default) keeps its identity
 
+    class Int8:
+        precision = "int8"
+        int8_calibration = tmp_path / "w_int8.json"
+
+    g = dope_detector_id("rgb", w, Int8())
+    Int8.int8_calibration.write_text("{}")
+    h = dope_detector_id("rgb", w, Int8())
+    Int8.int8_calibration.write_text('{"x": 1}')
+    assert g == d + ":int8none" and len({g, h, dope_detector_id("rgb", w, Int8())}) == 3  # the scales count
+
 
 def test_policy_table_warns_when_object_slots_run_out():
     """A map with more candidate objects than slots drops detections: the table says so."""
