@@ -4,7 +4,6 @@ deterministic and near its float maps (the shipped weights on rendered frames:
 ``tests/e2e/test_dope_detector.py``)."""
 import json
 
-import numpy as np
 import pytest
 import torch
 
