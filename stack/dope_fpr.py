@@ -519,7 +519,7 @@ class DopeDetector:
     has no native bfloat16 it runs in fp32 and says so in the log. ``"int8"``: the folded network's
     convolution blocks in 8-bit integers (:mod:`stack.dope.int8`, needs ``fold_stages``), at the activation
     scales of the calibration beside the weights (``NAME_int8.json``, from ``dopeslam calibrate-int8``); the
-    output layers stay float32. On a CPU it takes about 30 % off the network's time, and the maps differ
+    output layers stay float32. On a CPU it takes a fifth to a quarter off the network's time; the maps differ
     from fp32's by up to about 0.2 in belief (docs/speed.md has its effect on whole maps). :attr:`precision`
     is what runs.
     """
@@ -610,7 +610,7 @@ class DopeDetector:
             raise ValueError("precision int8 runs the folded network: fold_stages must be on")
         self.int8_calibration = int8.calibration_path(self.weights_path)
         calibration = int8.load(self.int8_calibration)
-        made_for = calibration.get("meta", {}).get("weights_sha256")
+        made_for = calibration["meta"].get("weights_sha256")  # load() checked its type
         if made_for is not None and made_for != file_sha256(self.weights_path):
             raise int8.Int8Error(f"{self.int8_calibration}: calibrated for other weights than {self.weights_path} "
                                  f"(run dopeslam calibrate-int8 --weights {self.weights_path})")

@@ -146,6 +146,9 @@ def load(path) -> dict:
         raise Int8Error(f"{path}: unreadable ({type(exc).__name__}); expected {expected}") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT or not isinstance(data.get("blocks"), dict):
         raise Int8Error(f"{path}: expected {expected}")
+    meta = data.setdefault("meta", {})
+    if not isinstance(meta, dict) or not isinstance(meta.get("weights_sha256", ""), str):
+        raise Int8Error(f"{path}: meta: expected an object whose weights_sha256 (if any) is a string")
     for name, block in data["blocks"].items():
         if not isinstance(block, dict):
             raise Int8Error(f"{path}: blocks.{name}: expected an object of observers")

@@ -148,20 +148,17 @@ def _calibrate(args) -> int:
 
 
 def _calibrate_int8(args) -> int:
-    from pathlib import Path
-
     import torch
-
-    from stack.errors import InputDataError
 
     from stack.dope import int8
     from stack.dope.evaluate import load_shard_frames
+    from stack.dope.train import ShardData
     from stack.dope_fpr import file_sha256
+    from stack.errors import InputDataError
 
     det = _detector(args)
     out = args.out or str(int8.calibration_path(det.weights_path))
-    shards = _shards(args) if args.shards else sorted(
-        int(p.stem[6:]) for p in Path(args.data).glob("shard_*.npz") if p.stem[6:].isdigit())
+    shards = _shards(args) if args.shards else ShardData(args.data, det.classes).available()
     if not shards:
         raise InputDataError(f"{args.data}: no shard_*.npz/.json pairs (run `dopeslam datagen` first)")
 
@@ -240,7 +237,8 @@ def register(subparsers) -> None:
                                   "calibrate the network's int8 activation scales (precision = int8) on datagen shards")):
         e = subparsers.add_parser(name, help=helptext)
         e.add_argument("--data", required=True, help="directory of datagen shards")
-        e.add_argument("--shards", default="", help="A:B shard index range (default: the held-out shards 0:2)")
+        e.add_argument("--shards", default="", help="A:B shard index range (default: " + (
+            "every shard" if name == "calibrate-int8" else "the held-out shards 0:2") + ")")
         e.add_argument("--weights", default="", help="weights file (default: shipped for --input)")
         e.add_argument("--input", choices=("rgb", "depth"), default="rgb")
         e.add_argument("--no-depth-refine", action="store_true",

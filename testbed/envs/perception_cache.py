@@ -516,7 +516,7 @@ def dope_detector_id(input_mode: str, weights=None, detector=None) -> str:
         from stack.dope.int8 import calibration_path
 
         cal = Path(getattr(detector, "int8_calibration", None) or calibration_path(path))
-        ident += f"{file_sha256(cal, 12) if cal.exists() else 'none'}"
+        ident += file_sha256(cal, 12) if cal.exists() else "none"
     return ident
 
 

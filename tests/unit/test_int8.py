@@ -79,6 +79,8 @@ def test_a_calibration_of_another_network_is_refused():
     (json.dumps({"format": int8.FORMAT, "blocks": {"features": {"o": {"scale": True, "zero_point": 0,
                                                                        "quant_min": 0, "quant_max": 127}}}}),
      "expected scale > 0"),
+    (json.dumps({"format": int8.FORMAT, "blocks": {}, "meta": {"weights_sha256": 5}}),
+     "meta: expected an object whose weights_sha256"),
 ])
 def test_bad_calibration_files_name_the_file_and_what_was_expected(tmp_path, content, says):
     path = tmp_path / "dope_rgb_int8.json"
