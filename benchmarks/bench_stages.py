@@ -22,14 +22,18 @@ The floors, measured on the same machine and the same data:
   measured on this CPU in the network's precision with the same torch threads: a 1024^3 ``torch.mm``
   (fp32, or bf16 where the detector runs bf16) and the network's fastest convolution run alone on its
   own input (the convolution library can be twice as fast as the matmul library on the same CPU),
-  times the network's inputs per second (one per image; with depth input, one per depth window);
+  times the network's inputs per second (one per image; with depth input, one per depth window). In
+  int8 the operations are the float network's (the FLOP counter does not see quantised kernels) and
+  the rate is the fastest int8 convolution module's alone, its operations counted from its shape (there
+  is no int8 matmul to set beside it; a block of one convolution runs it as an operator, not a module,
+  but its shape is among those of the blocks timed);
 - odometry: KISS-ICP's own voxelisation, alignment and map update as the stack's odometry calls them,
   on the points it registers (deskewed, cropped, the floor left out: the floor fit holds height, roll
   and pitch); beside it, ``KissICP.register_frame`` on the same whole sweeps (the points the simulator
   gave) without and with its deskew, times the sweep rate.
 
     python benchmarks/bench_stages.py [--scenario NAME] [--duration S] [--seed N] [--profile full|fast]
-        [--precision fp32|bf16] [--set KEY=VALUE ...]
+        [--precision fp32|bf16|int8] [--set KEY=VALUE ...]
 
 ``--set`` takes any config key, e.g. ``--set detector.keyframe_m=0.1 --set detector.keyframe_deg=5``
 (the keyframe gate: the network on the images the gate lets through only).
@@ -95,6 +99,22 @@ def matmul_gflops(n: int = 1024, repeats: int = 5, precision: str = "fp32") -> f
     return 2.0 * n ** 3 / max(best, 1e-9) / 1e9
 
 
+def _is_conv(module) -> bool:
+    """A 2-D convolution, float (``nn.Conv2d``) or quantised (``torch.ao.nn.quantized.Conv2d`` and its
+    fused ReLU variant)."""
+    import torch
+    from torch.ao.nn.quantized import Conv2d as QuantizedConv2d
+
+    return isinstance(module, (torch.nn.Conv2d, QuantizedConv2d))
+
+
+def conv_flops(module, out) -> int:
+    """FLOPs of one 2-D convolution from its shape and output ``out``: two per multiply-add, as
+    ``torch.utils.flop_counter`` counts a convolution (the bias not counted)."""
+    kh, kw = module.kernel_size
+    return 2 * out.numel() * (module.in_channels // module.groups) * kh * kw
+
+
 def conv_gflops(detector, repeats: int = 3) -> tuple[float, str]:
     """Best GFLOP/s (CPU time) of any one convolution of the detector's network run alone, on the very
     input it gets in one forward pass (the detector's precision and memory order, torch's current thread
@@ -112,7 +132,7 @@ def conv_gflops(detector, repeats: int = 3) -> tuple[float, str]:
         key = (mod.in_channels, mod.out_channels, mod.kernel_size, mod.stride, tuple(x.shape))
         seen.setdefault(key, (mod, x.detach().clone(memory_format=torch.preserve_format)))
 
-    hooks = [m.register_forward_hook(hook) for m in detector.model.modules() if isinstance(m, torch.nn.Conv2d)]
+    hooks = [m.register_forward_hook(hook) for m in detector.model.modules() if _is_conv(m)]
     try:
         w, h = detector.input_size
         detector._forward(np.zeros((1, 3, h, w), dtype=np.float32), detector.stages, last_only=True)
@@ -122,9 +142,12 @@ def conv_gflops(detector, repeats: int = 3) -> tuple[float, str]:
     best_rate, best_shape = 0.0, "-"
     with torch.inference_mode():
         for (cin, cout, k, _stride, shape), (mod, x) in seen.items():
-            with FlopCounterMode(display=False) as fc:
-                mod(x)
-            flops = fc.get_total_flops()
+            if isinstance(mod, torch.nn.Conv2d):
+                with FlopCounterMode(display=False) as fc:
+                    mod(x)
+                flops = fc.get_total_flops()
+            else:  # quantised: the counter does not see it
+                flops = conv_flops(mod, mod(x))
             best = float("inf")
             for _ in range(repeats):
                 t0 = time.process_time()
@@ -137,10 +160,17 @@ def conv_gflops(detector, repeats: int = 3) -> tuple[float, str]:
 
 
 def network_flops(detector) -> int:
-    """FLOPs of one forward pass of the detector's network on one image at its input size."""
+    """FLOPs of one forward pass of the detector's network on one image at its input size. In int8 they are
+    the float network's (the same multiply-adds; the FLOP counter does not see quantised kernels)."""
     import torch
     from torch.utils.flop_counter import FlopCounterMode
 
+    if getattr(detector, "precision", "fp32") == "int8":
+        from stack.dope_fpr import DopeDetector
+
+        detector = DopeDetector(weights=detector.weights_path, input=detector.input, stages=detector.stages,
+                                dims=detector.dims, input_size=detector.input_size, precision="fp32",
+                                fold_stages=detector.fold_stages)
     w, h = detector.input_size
     x = torch.zeros(1, 3, h, w, dtype=next(detector.model.parameters()).dtype)
     with torch.no_grad(), FlopCounterMode(display=False) as fc:
@@ -271,9 +301,9 @@ def measure(scenario=None, duration=None, seed=0, profile: str = "full", precisi
     if det is not None:
         flops = network_flops(det)
         precision = getattr(det, "precision", "fp32")
-        mm = matmul_gflops(precision=precision)
+        mm = None if precision == "int8" else matmul_gflops(precision=precision)  # no int8 matmul to time
         conv, conv_shape = conv_gflops(det)
-        gflops = max(mm, conv)
+        gflops = max(mm or 0.0, conv)
         floors["network"] = flops / (gflops * 1e9) * sum(inputs) / sim_s
     else:
         flops = gflops = precision = mm = conv = conv_shape = None
@@ -299,6 +329,8 @@ def table(m: dict) -> str:
            + "; {:.3f} of it at any image size: 16x12 pixels cost that)",
            "network": "{flops:.2f} GFLOP per input at {gf:.1f} GFLOP/s, the faster of {prec} matmul ({mm:.1f}) "
                       "and the network's fastest convolution alone ({conv:.1f}: {shape})",
+           "network_int8": "{flops:.2f} G operations per input at {gf:.1f} G/s, the network's fastest int8 "
+                           "convolution alone ({shape})",
            "odometry": "KISS-ICP's own voxelize, align and map update on the points the stack registers (the "
                        "floor left out); KissICP.register_frame on the same whole sweeps: {:.3f} without its "
                        "deskew, {:.3f} with"}
@@ -308,7 +340,8 @@ def table(m: dict) -> str:
         if isinstance(f, tuple):
             note, f = how[st].format(*f[1:]), f[0]
         elif f is not None:
-            note = how[st].format(flops=(m["flops"] or 0) / 1e9, gf=m["gflops"] or 0, prec=m.get("precision") or "fp32",
+            key = "network_int8" if st == "network" and m.get("precision") == "int8" else st
+            note = how[key].format(flops=(m["flops"] or 0) / 1e9, gf=m["gflops"] or 0, prec=m.get("precision") or "fp32",
                                   mm=m.get("matmul_gflops") or 0, conv=m.get("conv_gflops") or 0,
                                   shape=m.get("conv_shape") or "-")
         else:
@@ -327,9 +360,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--profile", choices=["full", "fast"], default="full",
                     help="the run profile (fast: camera at half rate, no segmentation image; docs/speed.md)")
-    ap.add_argument("--precision", choices=["fp32", "bf16"], default=None,
+    ap.add_argument("--precision", choices=["fp32", "bf16", "int8"], default=None,
                     help="the DOPE network's arithmetic (default: the detector's default; bf16 runs fp32 on a CPU "
-                         "without native bfloat16)")
+                         "without native bfloat16, int8 on one without PyTorch's quantised kernels)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a config key, e.g. detector.keyframe_m=0.1 (repeatable)")
     args = ap.parse_args(argv)

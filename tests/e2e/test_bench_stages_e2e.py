@@ -33,6 +33,21 @@ def test_bench_stages_meters_the_network_in_its_precision(capsys, monkeypatch):
 
 
 @pytest.mark.slow
+def test_bench_stages_meters_the_network_in_int8(capsys, monkeypatch):
+    """``--precision int8``: the network's floor is its multiply-adds at its fastest int8 convolution's
+    rate (where PyTorch has no quantised kernels the detector runs fp32, and so does the floor)."""
+    from stack.dope import int8
+
+    monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "1")
+    assert _load().main(["--duration", "0.3", "--precision", "int8"]) == 0
+    out = capsys.readouterr().out
+    if int8.available():
+        assert "network int8" in out and "fastest int8 convolution alone" in out
+    else:
+        assert "network fp32" in out and "the faster of fp32 matmul" in out
+
+
+@pytest.mark.slow
 def test_bench_stages_takes_config_keys(capsys, monkeypatch):
     """``--set detector.keyframe_m=...``: the keyframe gate holds most images of a standing robot from
     the network (the network's floor counts only the images it ran on)."""

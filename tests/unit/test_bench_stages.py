@@ -34,3 +34,41 @@ def test_bad_config_key_is_one_line_error(capsys):
     assert _load().main(["--duration", "0.1", "--set", "detector.no_such_key=1"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("bench_stages: ") and "no_such_key" in err and "Traceback" not in err
+
+
+def _detector(precision):
+    from sim.objects import load_catalog
+    from stack.dope_fpr import DopeDetector
+
+    return DopeDetector(dims={c: s.dims for c, s in load_catalog().items()}, precision=precision, threads=1)
+
+
+def test_int8_network_counts_the_float_networks_flops():
+    """The FLOP counter does not see quantised convolutions: in int8 each convolution is counted from its
+    shape, and that count is the float network's (the same multiply-adds)."""
+    import pytest
+
+    from stack.dope import int8
+
+    if not int8.available():
+        pytest.skip("this PyTorch has no x86 quantised kernels")
+    mod = _load()
+    fp32 = mod.network_flops(_detector("fp32"))
+    q = _detector("int8")
+    assert q.precision == "int8"
+    assert mod.network_flops(q) == fp32 > 5e9  # about 7 GFLOP per 320x240 image
+    rate, shape = mod.conv_gflops(q, repeats=1)
+    assert rate > 0 and "conv" in shape
+
+
+def test_conv_flops_by_shape_is_the_flop_counters():
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    mod = _load()
+    for conv, x in ((torch.nn.Conv2d(3, 16, 3, padding=1), torch.zeros(1, 3, 24, 32)),
+                    (torch.nn.Conv2d(32, 32, 7, padding=3, groups=2), torch.zeros(2, 32, 30, 40)),
+                    (torch.nn.Conv2d(8, 4, 1, stride=2), torch.zeros(1, 8, 9, 9))):
+        with torch.no_grad(), FlopCounterMode(display=False) as fc:
+            out = conv(x)
+        assert mod.conv_flops(conv, out) == fc.get_total_flops()
