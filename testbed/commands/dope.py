@@ -83,7 +83,7 @@ def _detector(args):
     dims = {c: s.dims for c, s in load_catalog().items()}
     return DopeDetector(weights=args.weights or None, input=args.input, stages=6, fpr=True, dims=dims,
                         thresholds=getattr(args, "thresholds", None) or None,
-                        depth_refine=not args.no_depth_refine)
+                        depth_refine=not args.no_depth_refine, precision=getattr(args, "precision", "fp32"))
 
 
 def _numbers(text: str, option: str, expected: str, count: int | None, ok) -> tuple[float, ...]:
@@ -114,7 +114,7 @@ def _evaluate(args) -> int:
     det = _detector(args)
     res = evaluate(det, args.data, _shards(args))
     table = res["per_stages"]
-    print(f"{res['images']} images from {args.data}, weights {det.weights_path}")
+    print(f"{res['images']} images from {args.data}, weights {det.weights_path}, network {det.precision}")
     print("stages  instances  detected  det(FPR)  median pos err  ADD pass  precision  precision(FPR)")
     for s, r in table.items():
         pe = "n/a" if r["median_position_error_m"] is None else f"{100 * r['median_position_error_m']:.1f} cm"
@@ -123,8 +123,8 @@ def _evaluate(args) -> int:
     if args.out:
         from testbed.io import write_json
 
-        write_json(args.out, {"weights": str(det.weights_path), "input": args.input, "data": args.data,
-                              "shards": _shards(args), "per_stages": table}, indent=1)
+        write_json(args.out, {"weights": str(det.weights_path), "input": args.input, "precision": det.precision,
+                              "data": args.data, "shards": _shards(args), "per_stages": table}, indent=1)
     return 0
 
 
@@ -138,7 +138,7 @@ def _calibrate(args) -> int:
     th = FprThresholds.calibrate(res["records"], args.target_precision, min_recall=args.min_recall,
                                  fallback_recall=args.fallback_recall,
                                  meta={"weights_sha256": file_sha256(det.weights_path), "data": args.data,
-                                       "shards": _shards(args), "input": args.input})
+                                       "shards": _shards(args), "input": args.input, "precision": det.precision})
     th.save(args.out)
     for cls, row in th.meta["stats"].items():
         print(cls, {s: (round(v["threshold"], 2), round(v["precision"], 3), round(v["recall"], 3), v["n"])
@@ -243,6 +243,9 @@ def register(subparsers) -> None:
         e.add_argument("--input", choices=("rgb", "depth"), default="rgb")
         e.add_argument("--no-depth-refine", action="store_true",
                        help="report PnP-only poses (default: each pose is fitted along its ray to the aligned depth)")
+        if name != "calibrate-int8":  # that one calibrates the float network
+            e.add_argument("--precision", choices=("fp32", "bf16", "int8"), default="fp32",
+                           help="the network's arithmetic, as the config's detector.precision")
         if name == "calibrate-fpr":
             e.add_argument("--target-precision", type=float, default=0.995)
             e.add_argument("--min-recall", type=float, default=0.6,
