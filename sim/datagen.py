@@ -321,8 +321,9 @@ def _worker(args):
     return str(generate_shard(cfg, shard))
 
 
-def generate(cfg: DatagenConfig) -> list[Path]:
-    """Render ``cfg.n_images`` images in shards with ``cfg.workers`` processes and a progress bar."""
+def generate(cfg: DatagenConfig, progress: bool = True) -> list[Path]:
+    """Render ``cfg.n_images`` images in shards with ``cfg.workers`` processes and (``progress``) a
+    progress bar."""
     from multiprocessing import get_context
 
     from tqdm import tqdm
@@ -333,10 +334,11 @@ def generate(cfg: DatagenConfig) -> list[Path]:
     jobs = [(cfg, s) for s in range(n_shards)]
     paths = []
     if cfg.workers <= 1:
-        for j in tqdm(jobs, desc="datagen shards", unit="shard"):
+        for j in tqdm(jobs, desc="datagen shards", unit="shard", disable=not progress):
             paths.append(Path(_worker(j)))
     else:
         with get_context("spawn").Pool(cfg.workers) as pool:
-            for path in tqdm(pool.imap_unordered(_worker, jobs), total=len(jobs), desc="datagen shards", unit="shard"):
+            for path in tqdm(pool.imap_unordered(_worker, jobs), total=len(jobs), desc="datagen shards", unit="shard",
+                             disable=not progress):
                 paths.append(Path(path))
     return sorted(paths)

@@ -14,6 +14,7 @@ def _datagen(args) -> int:
     from pathlib import Path
 
     from sim.datagen import DatagenConfig, generate
+    from testbed import progress
 
     if not 0.0 <= args.slim_stand_prob <= 1.0:
         raise UsageError(f"--slim-stand-prob: expected a share from 0 to 1, got {args.slim_stand_prob}")
@@ -24,7 +25,7 @@ def _datagen(args) -> int:
     cfg = DatagenConfig(out_dir=Path(args.out), n_images=args.images, shard_size=args.shard_size, seed=args.seed,
                         workers=args.workers, width=args.width, height=args.height,
                         slim_stand_prob=args.slim_stand_prob)
-    paths = generate(cfg)
+    paths = generate(cfg, progress=progress.enabled())
     print(f"{len(paths)} shards ({args.images} images) in {args.out}")
     return 0
 
@@ -110,9 +111,10 @@ def _shards(args) -> list[int]:
 
 def _evaluate(args) -> int:
     from stack.dope.evaluate import evaluate
+    from testbed import progress
 
     det = _detector(args)
-    res = evaluate(det, args.data, _shards(args))
+    res = evaluate(det, args.data, _shards(args), progress=progress.enabled())
     table = res["per_stages"]
     print(f"{res['images']} images from {args.data}, weights {det.weights_path}, network {det.precision}")
     print("stages  instances  detected  det(FPR)  median pos err  ADD pass  precision  precision(FPR)")
@@ -131,10 +133,11 @@ def _evaluate(args) -> int:
 def _calibrate(args) -> int:
     from stack.dope.evaluate import evaluate
     from stack.dope_fpr import FprThresholds, file_sha256
+    from testbed import progress
 
     det = _detector(args)
     det.fpr = False
-    res = evaluate(det, args.data, _shards(args))
+    res = evaluate(det, args.data, _shards(args), progress=progress.enabled())
     th = FprThresholds.calibrate(res["records"], args.target_precision, min_recall=args.min_recall,
                                  fallback_recall=args.fallback_recall,
                                  meta={"weights_sha256": file_sha256(det.weights_path), "data": args.data,

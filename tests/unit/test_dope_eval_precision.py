@@ -2,20 +2,22 @@
 ``detector.precision``: what they measure and calibrate is the network that will run."""
 import json
 
-from sim.datagen import DatagenConfig, generate_shard
 from stack.dope import int8
 from testbed.cli import main
 
 
 def test_dope_eval_and_calibrate_fpr_run_the_precision_asked_for(tmp_path, capsys):
+    """... and like every long command they draw no progress bar where stderr is not a terminal."""
     data = tmp_path / "shards"
-    data.mkdir()
-    generate_shard(DatagenConfig(out_dir=data, n_images=3, shard_size=3, seed=21), 0)
+    assert main(["datagen", "--out", str(data), "--images", "3", "--shard-size", "3", "--workers", "1",
+                 "--seed", "21"]) == 0
+    assert "datagen shards" not in capsys.readouterr().err
     runs = "int8" if int8.available() else "fp32"  # int8 falls back to fp32 without quantised kernels
     table, thresholds = tmp_path / "eval.json", tmp_path / "fpr.json"
     assert main(["-q", "dope-eval", "--data", str(data), "--shards", "0:1", "--precision", "int8",
                  "--out", str(table)]) == 0
-    assert f"network {runs}" in capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert f"network {runs}" in out and "dope eval" not in err
     assert json.loads(table.read_text())["precision"] == runs
     assert main(["-q", "calibrate-fpr", "--data", str(data), "--shards", "0:1", "--precision", "int8",
                  "--out", str(thresholds)]) == 0
