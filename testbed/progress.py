@@ -1,4 +1,5 @@
-"""Progress bars with an ETA for the long commands (``run``, ``replay``, ``record``, ``experiment``).
+"""Progress bars with an ETA for the long commands (``run``, ``replay``, ``record``, ``experiment``; the
+DOPE data commands ``datagen``, ``dope-eval`` and ``calibrate-fpr`` ask :func:`enabled` for theirs).
 
 They go to stderr, and only when stderr is a terminal; ``dopeslam --quiet`` (or ``-q`` after any
 command) turns them off. Code that runs without the command line gets no bars unless it calls
