@@ -380,7 +380,10 @@ def run_cells(cells, out_dir, jobs: int = 1, ray: bool = False, ray_address: str
         else:
             todo.append(i)
     prepare_shared([cells[i] for i in todo])
-    bar = _progress(len(cells), len(cells) - len(todo), progress)
+    from testbed import progress as bars
+
+    # a bar only where the command line's bars are on (a terminal, no -q), as for every long command
+    bar = _progress(len(cells), len(cells) - len(todo), progress and bars.enabled())
 
     def done(i: int, status: str, error: str | None, tries: int) -> None:
         d = out_dir / "cells" / keys[i]

@@ -29,6 +29,7 @@ def test_exit_codes_junit_and_baseline(tmp_path):
     good.write_text(SUITE.format(frames=10))
     r = dopeslam("test", good, "--out", tmp_path / "a", "--baseline", tmp_path / "base", "--update-baseline")
     assert r.returncode == 0, r.stderr[-2000:]
+    assert "cell/s" not in r.stderr  # no progress bar where stderr is not a terminal
     assert json.loads((tmp_path / "a" / "summary.json").read_text())["passed"] is True
     suite = ET.parse(tmp_path / "a" / "junit.xml").getroot().find("testsuite")
     assert (suite.get("tests"), suite.get("failures"), suite.get("errors")) == ("1", "0", "0")
