@@ -137,6 +137,7 @@ def test_render_processes_rasterise_in_the_calling_thread_unless_the_user_says(m
     """A render process is started with ``LP_NUM_THREADS=0`` (Mesa's rasteriser without threads of its
     own), unless the user set the variable; this process's own environment is left as it is."""
     import os
+    import time
 
     from sim.render import RASTERISER_THREADS, RenderWorker, rasterise_in_the_calling_thread
     from sim.scenario import load_scenario
@@ -149,9 +150,16 @@ def test_render_processes_rasterise_in_the_calling_thread_unless_the_user_says(m
         sc = load_scenario(None)
         worker = RenderWorker(sc, default_camera_info())
         try:
-            environ = open(f"/proc/{worker._proc.pid}/environ", "rb").read().split(b"\0")
+            # the file reads empty for a moment on a busy machine (the child just started): read it again
+            for _ in range(100):
+                raw = open(f"/proc/{worker._proc.pid}/environ", "rb").read()
+                if raw:
+                    break
+                time.sleep(0.05)
+            assert raw, "the render process's environment could not be read"
         finally:
             worker.close()
+        environ = raw.split(b"\0")
         return [e.split(b"=", 1)[1].decode() for e in environ if e.startswith(RASTERISER_THREADS.encode() + b"=")]
 
     monkeypatch.delenv(RASTERISER_THREADS, raising=False)
