@@ -40,7 +40,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from stack.errors import DopeSlamError
 from stack.evidence import EvidenceConfig
@@ -104,6 +104,13 @@ class DetectorConfig(BaseModel):
         "fp32", description="the network's arithmetic: bf16 halves its time on a CPU with native bfloat16 "
         "(AVX512-BF16, AMX; elsewhere it runs fp32); int8 runs its convolutions in 8-bit integers on any x86 CPU, "
         "at the calibration beside the weights (NAME_int8.json); neither's maps are always fp32's (docs/speed.md)")
+
+    @field_validator("precision")
+    @classmethod
+    def _int8_runs_folded(cls, value, info):
+        if value == "int8" and info.data.get("fold_stages") is False:
+            raise ValueError("int8 runs the folded network only (detector.fold_stages = true)")
+        return value
 
     def keyframes(self):
         """The :class:`stack.keyframes.KeyframeSettings` of ``keyframe_*`` (None while off)."""

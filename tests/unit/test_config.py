@@ -51,6 +51,8 @@ def test_environment_syntax():
     ({"detector.input": "ir"}, "--set detector.input=ir", "detector.input"),
     ({"evidence.vote_share": "2"}, "--set evidence.vote_share=2", "evidence.vote_share"),
     ({"detector.stages.x": "1"}, "--set detector.stages.x=1", "detector.stages"),
+    ({"detector.precision": "int8", "detector.fold_stages": "false"}, "--set detector.fold_stages=false",
+     "detector.precision"),  # int8 quantises the folded network only
 ])
 def test_bad_key_or_value_named_on_one_line(sets, source, key):
     with pytest.raises(ConfigError) as e:
