@@ -43,7 +43,7 @@ class RouteFollower:
         self.closest = np.full(len(self.route.waypoints), np.inf)  # how near the robot came to each waypoint
 
     def __call__(self, t: float, T_world_base: np.ndarray) -> tuple[float, float]:
-        x, y = T_world_base[0, 3], T_world_base[1, 3]
+        x, y = float(T_world_base[0, 3]), float(T_world_base[1, 3])
         for i, w in enumerate(self.route.waypoints):
             self.closest[i] = min(self.closest[i], math.hypot(w[0] - x, w[1] - y))
         if self.done or t < self.pause_until:
@@ -60,7 +60,7 @@ class RouteFollower:
             return self(t, T_world_base)
         speed = wp[2] if len(wp) == 3 else self.route.speed
         err = (math.atan2(wp[1] - y, wp[0] - x) - yaw_of(T_world_base) + math.pi) % (2 * math.pi) - math.pi
-        w = float(np.clip(3.0 * err, -1.5, 1.5))
+        w = min(max(3.0 * err, -1.5), 1.5)
         v = speed * max(0.0, math.cos(err)) ** 4
         if d < 0.4 and abs(err) > 0.4:
             v = 0.0

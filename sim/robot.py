@@ -8,10 +8,16 @@ import numpy as np
 import pybullet as p
 
 from sim.camera import hardware
-from stack.transforms import from_xyz_quat, inv, make_T
+from stack.transforms import from_xyz_quat, inv
 
 URDF = Path(__file__).parent / "jackal_urdf" / "jackal.urdf"
 WHEELS = ("front_left_wheel", "rear_left_wheel", "front_right_wheel", "rear_right_wheel")
+
+
+def _clip(x: float, limit: float) -> float:
+    """``x`` limited to [-limit, limit] (what ``float(np.clip(x, -limit, limit))`` gives, NaN included,
+    without NumPy's cost on one number: the robot is commanded at every physics step)."""
+    return min(max(x, -limit), limit)
 
 
 class Jackal:
@@ -68,10 +74,10 @@ class Jackal:
     def command(self, v_cmd: float, w_cmd: float, dt: float) -> None:
         """Apply cmd_vel through the Jackal's speed and acceleration limits to the wheel motors."""
         hw = self.hw
-        v_cmd = float(np.clip(v_cmd, -hw["max_speed"], hw["max_speed"]))
-        w_cmd = float(np.clip(w_cmd, -hw["max_yaw_rate"], hw["max_yaw_rate"]))
-        self.v += float(np.clip(v_cmd - self.v, -hw["max_accel"] * dt, hw["max_accel"] * dt))
-        self.w += float(np.clip(w_cmd - self.w, -hw["max_yaw_accel"] * dt, hw["max_yaw_accel"] * dt))
+        v_cmd = _clip(float(v_cmd), hw["max_speed"])
+        w_cmd = _clip(float(w_cmd), hw["max_yaw_rate"])
+        self.v += _clip(v_cmd - self.v, hw["max_accel"] * dt)
+        self.w += _clip(w_cmd - self.w, hw["max_yaw_accel"] * dt)
         r = hw["wheel_radius"]
         left = (self.v - self.w * self.track_eff / 2) / r
         right = (self.v + self.w * self.track_eff / 2) / r
@@ -89,7 +95,8 @@ class Jackal:
         w = (wr - wl) / self.track_eff
         dyaw = w * dt
         c, s = np.cos(dyaw / 2), np.sin(dyaw / 2)
-        step = make_T(np.array([[np.cos(dyaw), -np.sin(dyaw), 0], [np.sin(dyaw), np.cos(dyaw), 0], [0, 0, 1]]),
-                      [v * dt * c, v * dt * s, 0.0])
+        cy, sy = np.cos(dyaw), np.sin(dyaw)
+        step = np.array([[cy, -sy, 0.0, v * dt * c], [sy, cy, 0.0, v * dt * s], [0.0, 0.0, 1.0, 0.0],
+                         [0.0, 0.0, 0.0, 1.0]])
         self.T_odom_base = self.T_odom_base @ step
         self.odo_v, self.odo_w = v, w
