@@ -27,9 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import openpyxl
-import pandas as pd
-from openpyxl.utils.exceptions import InvalidFileException
 from scipy.spatial.transform import Rotation
 
 from stack.evidence import CANDIDATE, LABEL, EvidenceConfig, assess, detected_range
@@ -524,6 +521,8 @@ def _writer(path: Path):
 
 
 def _write_xlsx(path: Path, objects: Sequence[MapObject], floor=None) -> None:
+    import pandas as pd  # here, not at the top: the processes that only detect never load it (0.3 s each)
+
     table = pd.DataFrame([o.row() for o in objects], columns=COLUMNS)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:  # our handle: closed even if pandas fails midway
         with pd.ExcelWriter(f, engine="openpyxl") as writer:
@@ -540,6 +539,9 @@ def _write_json(path: Path, objects: Sequence[MapObject], floor=None) -> None:
 
 
 def _read_xlsx(path: Path, classes: set[str] | None) -> list[MapObject]:
+    import openpyxl
+    from openpyxl.utils.exceptions import InvalidFileException
+
     try:
         wb = openpyxl.load_workbook(path, read_only=True, data_only=True)
     except (OSError, zipfile.BadZipFile, InvalidFileException, KeyError, ValueError) as e:
