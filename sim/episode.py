@@ -544,9 +544,11 @@ class Episode:
         """Per object: projected key points (DOPE order), whether in front, and the visible fraction."""
         info = frame.info
         seg = frame.extra.get("segmentation")
+        ids = None  # the segmentation's body ids (low 24 bits), computed once for every object's count
+        T_cam_world = inv(frame.T_world_camera)
         out = []
         for obj in self.world.objects:
-            T_cam_obj = inv(frame.T_world_camera) @ obj.T_world_obj
+            T_cam_obj = T_cam_world @ obj.T_world_obj
             kp = transform_points(T_cam_obj, cuboid_keypoints(obj.dims))
             in_front = bool(np.all(kp[:, 2] > 0.05))
             uv = np.full((9, 2), np.nan)
@@ -556,7 +558,9 @@ class Episode:
                 hull = cv2.convexHull(uv[:8].astype(np.float32))
                 area = float(cv2.contourArea(hull))
                 if seg is not None and area > 1:
-                    px = int(np.count_nonzero((seg & ((1 << 24) - 1)) == self.world.object_bodies[obj.name]))
+                    if ids is None:
+                        ids = seg & ((1 << 24) - 1)
+                    px = int(np.count_nonzero(ids == self.world.object_bodies[obj.name]))
                     visible = float(min(1.0, px / area))
             out.append({"name": obj.name, "cls": obj.cls, "T_cam_obj": T_cam_obj, "keypoints_px": uv,
                         "in_front": in_front, "visible_fraction": visible, "distance_m": float(np.linalg.norm(T_cam_obj[:3, 3]))})
