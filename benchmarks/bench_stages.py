@@ -33,10 +33,11 @@ The floors, measured on the same machine and the same data:
   gave) without and with its deskew, times the sweep rate.
 
     python benchmarks/bench_stages.py [--scenario NAME] [--duration S] [--seed N] [--profile full|fast]
-        [--precision fp32|bf16|int8] [--set KEY=VALUE ...]
+        [--precision fp32|bf16|int8] [--set KEY=VALUE ...] [--png PATH]
 
 ``--set`` takes any config key, e.g. ``--set detector.keyframe_m=0.1 --set detector.keyframe_deg=5``
-(the keyframe gate: the network on the images the gate lets through only).
+(the keyframe gate: the network on the images the gate lets through only). ``--png PATH`` also draws
+the table as a bar chart, each stage's CPU time beside its floor.
 """
 from __future__ import annotations
 
@@ -355,6 +356,36 @@ def table(m: dict) -> str:
     return "\n".join(lines)
 
 
+def plot(m: dict, path, scenario: str | None = None) -> None:
+    """The table as a picture (PNG, written atomically): per stage, its CPU seconds per simulated second
+    as a bar, its floor as a darker bar inside it, and how far above its floor it runs."""
+    from testbed.plots import plt, save
+
+    sim = m["sim_s"]
+    rows = []
+    for st in STAGES:
+        f = m["floors"].get(st)
+        rows.append((LABELS[st].split(" (")[0], m["stages"][st] / sim, f[0] if isinstance(f, tuple) else f))
+    rows.reverse()  # the table's first row on top
+    fig, ax = plt.subplots(figsize=(8, 0.45 * len(rows) + 1.6))
+    y = range(len(rows))
+    ax.barh(y, [v for _, v, _ in rows], color="tab:blue", alpha=0.45, label="measured")
+    ax.barh(y, [f or 0.0 for _, _, f in rows], height=0.4, color="tab:blue", label="floor on this CPU")
+    top = max(v for _, v, _ in rows)
+    for k, (_, v, f) in enumerate(rows):
+        ax.text(v + 0.01 * top, k, f"{v:.3f}" + (f"  ({v / f:.1f}x floor)" if f else "  (no floor)"),
+                va="center", fontsize=7)
+    ax.set_yticks(list(y))
+    ax.set_yticklabels([name for name, _, _ in rows], fontsize=8)
+    ax.set_xlim(0, top * 1.45)
+    ax.set_xlabel("CPU s per simulated second")
+    ax.set_title(f"{scenario or 'default scenario'}, profile {m.get('profile', 'full')}, network "
+                 f"{m.get('precision') or 'fp32'}: {m['cpu_s'] / sim:.2f} CPU s per simulated second in all "
+                 f"({m['sim_s']:.0f} s simulated)", fontsize=9)
+    ax.legend(loc="lower right", fontsize=7)
+    save(fig, path)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default=None, help="bundled name or TOML (default: the default scenario)")
@@ -367,7 +398,12 @@ def main(argv=None) -> int:
                          "without native bfloat16, int8 on one without PyTorch's quantised kernels)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a config key, e.g. detector.keyframe_m=0.1 (repeatable)")
+    ap.add_argument("--png", type=Path, default=None, metavar="PATH",
+                    help="also draw the table as a bar chart, each stage beside its floor (PNG)")
     args = ap.parse_args(argv)
+    if args.png is not None and (args.png.is_dir() or not args.png.parent.is_dir()):
+        print(f"--png {args.png}: expected a file path in an existing folder", file=sys.stderr)
+        return 2
     if args.duration is not None and args.duration <= 0:
         print(f"--duration: expected seconds > 0, got {args.duration}", file=sys.stderr)
         return 2
@@ -384,6 +420,9 @@ def main(argv=None) -> int:
           f"load average {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print(f"map: {ls['labelled']}/{ls['objects']} labelled, {ls['false_labels']} false")
     print(table(m))
+    if args.png is not None:
+        plot(m, args.png, args.scenario)
+        print(f"chart: {args.png}")
     return 0
 
 

@@ -6,10 +6,12 @@ from helpers.bench_stages import load_bench as _load
 
 
 @pytest.mark.slow
-def test_bench_stages_prints_the_table(capsys, monkeypatch):
+def test_bench_stages_prints_the_table(capsys, monkeypatch, tmp_path):
     monkeypatch.setenv("DOPESLAM_TORCH_THREADS", "1")
-    assert _load().main(["--duration", "0.5"]) == 0
+    chart = tmp_path / "stages.png"
+    assert _load().main(["--duration", "0.5", "--png", str(chart)]) == 0
     out = capsys.readouterr().out
+    assert chart.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"chart: {chart}" in out
     for row in ("rendering", "LiDAR ray casting", "KISS-ICP odometry", "DOPE network", "depth fit + FPR",
                 "fusion", "**all**", "GFLOP per input", "fastest convolution alone", "KISS-ICP's own voxelize", "KissICP.register_frame"):
         assert row in out, row

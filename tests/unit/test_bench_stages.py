@@ -30,6 +30,29 @@ def test_bad_duration_is_one_line_error(capsys):
     assert "--duration" in capsys.readouterr().err
 
 
+def test_bad_png_path_is_one_line_error(capsys, tmp_path):
+    for bad in (tmp_path, tmp_path / "no_such_folder" / "stages.png"):
+        assert _load().main(["--duration", "0.1", "--png", str(bad)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("--png ") and str(bad) in err and "Traceback" not in err
+
+
+def test_chart_draws_each_stage_beside_its_floor(tmp_path):
+    """The chart of a measurement: a PNG with one bar per stage (a made-up measurement: the chart is
+    under test here, the episode in tests/e2e/test_bench_stages_e2e.py)."""
+    from PIL import Image
+
+    mod = _load()
+    stages = dict(zip(mod.STAGES, (3.0, 9.0, 2.0, 6.0, 30.0, 4.0, 1.0)))
+    m = {"sim_s": 10.0, "cpu_s": 55.0, "stages": stages, "profile": "full", "precision": "fp32",
+         "floors": {"rendering": (0.4, 0.3, 0.1), "network": 1.5, "odometry": (0.3, 0.35, 0.4)}}
+    out = tmp_path / "stages.png"
+    mod.plot(m, out)
+    with Image.open(out) as im:
+        assert im.format == "PNG" and im.size[0] > 400 and im.size[1] > 200
+    assert list(tmp_path.iterdir()) == [out]  # written through a temporary file, nothing left beside it
+
+
 def test_bad_config_key_is_one_line_error(capsys):
     assert _load().main(["--duration", "0.1", "--set", "detector.no_such_key=1"]) == 2
     err = capsys.readouterr().err
