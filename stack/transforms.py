@@ -33,7 +33,7 @@ def from_xyz_quat(xyz, quat_xyzw) -> np.ndarray:
 
     One quaternion is turned into its matrix in plain floats, with the operations SciPy's
     ``Rotation.from_quat(q).as_matrix()`` does in the same order, so the bits are the same at a
-    twentieth of the cost (the simulator calls this at every physics step). A zero, infinite or NaN
+    fifth of the cost (the simulator calls this at every physics step). A zero, infinite or NaN
     norm, or any other shape, goes through SciPy itself, so its errors are SciPy's."""
     q = np.asarray(quat_xyzw, dtype=float)
     t = np.asarray(xyz, dtype=float)
