@@ -20,7 +20,10 @@ Backends:
   channels_last=False)``);
 - ``torch channels-last``: ``inference_mode``, weights and input channels-last;
 - ``torch channels-last folded``: the same with the refinement stages folded
-  (``stack.dope.net.FoldedDopeNet``): as the detector runs it by default;
+  (``stack.dope.net.FoldedDopeNet``): as the detector runs it by default on a CPU with AVX-512;
+- ``torch channels-last folded, refinement contiguous``: the same with the refinement stages (7x7
+  convolutions) in the plain memory order (``stack.dope.net.set_memory_order``): as the detector runs it by
+  default on an AVX2 CPU (``detector.refinement_order`` auto);
 - ``torch channels-last bf16``: as ``DopeDetector(precision="bf16")`` runs it (folded), weights and input
   in bfloat16; only on a CPU with native bfloat16 (AVX512-BF16 or AMX);
 - ``torch int8``: as ``DopeDetector(precision="int8")`` runs it (folded, its convolution blocks quantised
@@ -175,7 +178,7 @@ def main(argv=None) -> int:
     except ModuleNotFoundError as exc:
         ort_version = None
         notes.append(f"onnxruntime skipped: {exc.name} is not installed (pip install onnxruntime onnx)")
-    from stack.dope.net import FoldedDopeNet
+    from stack.dope.net import FoldedDopeNet, set_memory_order
     from stack.dope_fpr import DopeDetector, bf16_native
     from stack.messages import CameraFrame
 
@@ -207,6 +210,13 @@ def main(argv=None) -> int:
     def folded_fn(x):  # as DopeDetector runs it by default
         xt = torch.from_numpy(x).contiguous(memory_format=torch.channels_last)
         return [(b.numpy(), a.numpy()) for b, a in model_folded(xt, S)]
+
+    model_mixed = set_memory_order(FoldedDopeNet(copy.deepcopy(model)), True, False)
+
+    @torch.inference_mode()
+    def mixed_fn(x):  # as DopeDetector runs it by default on an AVX2 CPU (refinement_order auto)
+        xt = torch.from_numpy(x).contiguous(memory_format=torch.channels_last)
+        return [(b.numpy(), a.numpy()) for b, a in model_mixed(xt, S)]
 
     model_bf16 = copy.deepcopy(model_folded).to(torch.bfloat16)
 
@@ -241,6 +251,7 @@ def main(argv=None) -> int:
         backends.append(("torch", th, torch_fn, 0.0))
         backends.append(("torch channels-last", th, channels_last_fn, 0.0))
         backends.append(("torch channels-last folded", th, folded_fn, 0.0))
+        backends.append(("torch channels-last folded, refinement contiguous", th, mixed_fn, 0.0))
         if bf16_native():
             backends.append(("torch channels-last bf16", th, bf16_fn, 0.0))
         if int8_det is not None:

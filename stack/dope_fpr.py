@@ -58,7 +58,7 @@ from stack.dope.colour_names import ColourModel, colour_names
 from stack.dope.depth_refine import refine_translation
 from stack.dope.depth_window import preprocess_depth, sliding_windows, window_content
 from stack.dope.shape_check import shape_verdict
-from stack.dope.net import N_AFFINITY, N_BELIEF, STRIDE, FoldedDopeNet, load_weights
+from stack.dope.net import N_AFFINITY, N_BELIEF, STRIDE, FoldedDopeNet, load_weights, set_memory_order
 from stack import metrics
 from stack.config import torch_threads
 from stack.errors import DopeSlamError
@@ -73,6 +73,7 @@ MEAN, STD = 0.5, 0.25  # as in training (stack.dope.train)
 
 
 PRECISIONS = ("fp32", "bf16", "int8")
+REFINEMENT_ORDERS = ("auto", "channels_last", "contiguous")
 DEFAULT_PRECISION = "fp32"
 
 
@@ -99,6 +100,21 @@ def effective_precision(precision: str = DEFAULT_PRECISION, device="cpu") -> str
 
         return "int8" if torch.device(device).type == "cpu" and int8.available() else "fp32"
     return "fp32"
+
+
+def refinement_memory_order(order: str = "auto", channels_last: bool = True, device="cpu") -> str:
+    """The memory order the network's refinement stages run in, for ``order`` ("auto", "channels_last" or
+    "contiguous"). ``"auto"``: the plain (contiguous) order on a CPU whose widest vector unit PyTorch uses
+    is AVX2, where oneDNN's 7x7 convolutions of 32 channels run faster in it (the network takes about 10 %
+    less time: docs/speed.md, "The refinement stages in the plain memory order"); elsewhere the order of
+    ``channels_last``."""
+    if order not in REFINEMENT_ORDERS:
+        raise ValueError(f"refinement_order must be one of {', '.join(REFINEMENT_ORDERS)}, got {order!r}")
+    if order != "auto":
+        return order
+    if torch.device(device).type == "cpu" and torch.backends.cpu.get_cpu_capability() == "AVX2":
+        return "contiguous"
+    return "channels_last" if channels_last else "contiguous"
 
 
 def default_weights(input_mode: str = "rgb") -> Path:
@@ -509,6 +525,11 @@ class DopeDetector:
     channels_last: run the network with its weights and input in channels-last memory order (on a CPU,
     about 15 % less time per image: docs/speed.md); the maps differ from the default order's in the last
     float bits only.
+    refinement_order: the memory order of the refinement stages (stages 2-6, 7x7 convolutions, three
+    quarters of the multiply-adds): ``"channels_last"``, ``"contiguous"`` or ``"auto"`` (the default:
+    contiguous on an AVX2 CPU, where it is faster, else as ``channels_last``;
+    :func:`refinement_memory_order`); :attr:`refinement_order` is what runs. The maps differ in the last
+    float bits only.
     fold_stages: run each refinement stage's first convolution on the previous stage's last hidden layer
     in place of its maps (:class:`stack.dope.net.FoldedDopeNet`: about a fifth fewer multiply-adds); the
     maps differ in the last float bits only.
@@ -532,7 +553,7 @@ class DopeDetector:
                  colour=None, colour_margin: float = 0.0, min_colour_brightness: float = 20.0,
                  window_min_pixels: int = WINDOW_MIN_PIXELS, shape_check: bool = True,
                  shape_min_residual_m: float = 0.006, shape_ratio: float = 1.5, channels_last: bool = True,
-                 precision: str = DEFAULT_PRECISION, fold_stages: bool = True):
+                 precision: str = DEFAULT_PRECISION, fold_stages: bool = True, refinement_order: str = "auto"):
         if input not in ("rgb", "depth"):
             raise ValueError(f"input must be 'rgb' or 'depth', got {input!r}")
         if not dims:
@@ -549,8 +570,8 @@ class DopeDetector:
         if self.fold_stages:
             self.model = FoldedDopeNet(self.model)
         self.channels_last = bool(channels_last)
-        if self.channels_last:
-            self.model = self.model.to(memory_format=torch.channels_last)
+        self.refinement_order = refinement_memory_order(refinement_order, self.channels_last, self.device)
+        set_memory_order(self.model, self.channels_last, self.refinement_order == "channels_last")
         self.precision = effective_precision(precision, self.device)  # what runs
         if self.precision != precision:
             log.warning("precision %s: %s; the network runs in fp32", precision,
@@ -616,9 +637,10 @@ class DopeDetector:
                                  f"(run dopeslam calibrate-int8 --weights {self.weights_path})")
         w, h = input_size
         example = torch.zeros((1, 3, int(h), int(w)))
-        self.model = int8.quantize(self.model.to(memory_format=torch.contiguous_format), calibration, example,
+        self.model = int8.quantize(set_memory_order(self.model, False, False), calibration, example,
                                    source=self.int8_calibration)
         self.channels_last = False  # the int8 kernels take the plain order as fast
+        self.refinement_order = "contiguous"
 
     # network input -------------------------------------------------------------------------------
     def _inputs(self, frame: CameraFrame) -> tuple[np.ndarray, list]:

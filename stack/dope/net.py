@@ -63,6 +63,10 @@ def _conv(cin: int, cout: int, k: int, relu: bool = True) -> list[nn.Module]:
     return layers
 
 
+def _in_order(t: torch.Tensor, memory_format: torch.memory_format | None) -> torch.Tensor:
+    return t if memory_format is None else t.contiguous(memory_format=memory_format)
+
+
 def _stage_count(config: DopeNetConfig, stages: int | None) -> int:
     """The number of stages a forward pass evaluates (None: all); outside 1..``config.stages``: ValueError."""
     n = config.stages if stages is None else int(stages)
@@ -113,6 +117,7 @@ class DopeNet(nn.Module):
             mods += _conv(_ch(128, w), n_out, 1, relu=False)
             stages.append(nn.Sequential(*mods))
         self.stages = nn.ModuleList(stages)
+        self.refinement_format: torch.memory_format | None = None  # set by set_memory_order
 
     @property
     def classes(self) -> tuple:
@@ -123,8 +128,11 @@ class DopeNet(nn.Module):
         feats = self.features(x)
         outs = []
         prev = None
+        feats_r = feats
+        if n > 1 and self.refinement_format is not None:
+            feats_r = feats.contiguous(memory_format=self.refinement_format)
         for i in range(n):
-            inp = feats if i == 0 else torch.cat([feats, prev], dim=1)
+            inp = feats if i == 0 else torch.cat([feats_r, _in_order(prev, self.refinement_format)], dim=1)
             prev = self.stages[i](inp)
             outs.append((prev[:, :self.n_belief], prev[:, self.n_belief:]))
         return outs
@@ -191,7 +199,8 @@ class FoldedDopeNet(nn.Module):
             self.on_hidden.append(conv_h)
             self.on_bias.append(conv_b)
             self.hidden.append(nn.Sequential(*layers[1:-1]))  # the first layer's ReLU onwards
-        self._bias_maps: dict = {}  # (stage, h, w, dtype, device) -> on_bias over an image of ones
+        self._bias_maps: dict = {}  # (stage, h, w, dtype, device, order) -> on_bias over an image of ones
+        self.refinement_format: torch.memory_format | None = None  # set by set_memory_order
         self.eval()
 
     @property
@@ -208,8 +217,10 @@ class FoldedDopeNet(nn.Module):
         maps = self.out[0](h)
         outs = [(maps[:, :self.n_belief], maps[:, self.n_belief:])]
         ones = None
+        if n > 1 and self.refinement_format is not None:
+            feats, h = _in_order(feats, self.refinement_format), _in_order(h, self.refinement_format)
         for i in range(1, n):
-            key = (i, feats.shape[-2], feats.shape[-1], feats.dtype, feats.device)
+            key = (i, feats.shape[-2], feats.shape[-1], feats.dtype, feats.device, self.refinement_format)
             bias = self._bias_maps.get(key)
             if bias is None:  # the same for every image of a size: computed once
                 if ones is None:
@@ -221,6 +232,28 @@ class FoldedDopeNet(nn.Module):
             maps = self.out[i](h)
             outs.append((maps[:, :self.n_belief], maps[:, self.n_belief:]))
         return outs
+
+
+def set_memory_order(model: DopeNet | FoldedDopeNet, channels_last: bool, refinement_channels_last: bool):
+    """Put ``model``'s weights in the memory order its convolutions run fastest in, in place.
+
+    ``channels_last``: the features and the first stage (3x3 convolutions) in channels-last order, else
+    the plain (contiguous) one; ``refinement_channels_last``: the same for the refinement stages (7x7
+    convolutions), whose input is converted to their order in the forward pass. The maps are the same in
+    either order to the last float bits. Returns ``model``.
+    """
+    first = torch.channels_last if channels_last else torch.contiguous_format
+    refine = torch.channels_last if refinement_channels_last else torch.contiguous_format
+    model.to(memory_format=first)
+    if isinstance(model, FoldedDopeNet):
+        later = [*model.hidden[1:], *model.out[1:], *model.on_features, *model.on_hidden, *model.on_bias]
+        model._bias_maps.clear()
+    else:
+        later = list(model.stages[1:])
+    for m in later:
+        m.to(memory_format=refine)
+    model.refinement_format = None if refine == first else refine
+    return model
 
 
 def expand_stages(model: DopeNet, stages: int) -> DopeNet:

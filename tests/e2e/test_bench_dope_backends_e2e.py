@@ -11,6 +11,7 @@ def test_bench_dope_backends_prints_the_table(capsys):
     assert mod.main(["--repeats", "1", "--frames", "1", "--threads", "1", "--no-compile"]) == 0
     out = capsys.readouterr().out
     assert "| torch | 1 |" in out and "| torch channels-last | 1 |" in out and "| torch channels-last folded | 1 |" in out
+    assert "| torch channels-last folded, refinement contiguous | 1 |" in out
     differ = [line for line in out.splitlines() if "| NO " in line]
     # every fp32 backend decodes the same detections as torch; bfloat16 and int8 need not (docs/speed.md)
     assert all(line.startswith(("| torch channels-last bf16 |", "| torch int8 |")) for line in differ), differ

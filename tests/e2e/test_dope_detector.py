@@ -88,18 +88,21 @@ def test_fpr_rejects_a_detection_the_depth_image_contradicts():
 
 @pytest.mark.slow
 def test_channels_last_gives_the_same_detections():
-    """The default (channels-last) memory order against torch's contiguous one (both fp32), on three rendered objects:
-    the same classes and FPR verdicts, key points within 1e-3 px, translations within 0.1 mm."""
+    """The default memory orders, and channels-last throughout, against torch's contiguous order (all fp32),
+    on three rendered objects: the same classes and FPR verdicts, key points within 1e-3 px, translations
+    within 0.1 mm."""
     for cls, distance in (("E", 0.8), ("Mustard", 0.9), ("Cookies", 0.7)):
         frame, _, dims = _render(cls, distance)
-        fast = DopeDetector(input="rgb", stages=6, fpr=True, dims=dims, precision="fp32").detect(frame)
         plain = DopeDetector(input="rgb", stages=6, fpr=True, dims=dims, channels_last=False,
-                             precision="fp32").detect(frame)
-        assert fast, f"nothing detected for {cls}"
-        assert [(d.cls, d.fpr_pass) for d in fast] == [(d.cls, d.fpr_pass) for d in plain]
-        for a, b in zip(fast, plain):
-            assert np.abs(a.keypoints_px - b.keypoints_px).max() < 1e-3
-            assert np.abs(a.T_cam_obj[:3, 3] - b.T_cam_obj[:3, 3]).max() < 1e-4
+                             refinement_order="contiguous", precision="fp32").detect(frame)
+        for order in ("auto", "channels_last"):
+            fast = DopeDetector(input="rgb", stages=6, fpr=True, dims=dims, precision="fp32",
+                                refinement_order=order).detect(frame)
+            assert fast, f"nothing detected for {cls}"
+            assert [(d.cls, d.fpr_pass) for d in fast] == [(d.cls, d.fpr_pass) for d in plain]
+            for a, b in zip(fast, plain):
+                assert np.abs(a.keypoints_px - b.keypoints_px).max() < 1e-3
+                assert np.abs(a.T_cam_obj[:3, 3] - b.T_cam_obj[:3, 3]).max() < 1e-4
 
 
 @pytest.mark.slow

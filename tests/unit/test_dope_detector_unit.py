@@ -48,3 +48,33 @@ def test_precision_is_checked_and_falls_back_to_fp32_without_native_bfloat16(mon
     assert DetectorConfig(precision="bf16").dope_kwargs()["precision"] == "bf16"
     with pytest.raises(Exception, match="precision"):
         DetectorConfig(precision="int4")
+
+
+def test_refinement_order_follows_the_cpu_unless_named(monkeypatch):
+    """``auto`` runs the refinement stages in the plain order on an AVX2 CPU, elsewhere in the order of
+    ``channels_last``; a named order is what runs; anything else is an error, in the config too."""
+    import torch
+
+    from stack.config import DetectorConfig
+    from stack.dope_fpr import refinement_memory_order
+
+    dims = {"E": (0.1, 0.14, 0.035)}
+    for capability, want in (("AVX2", "contiguous"), ("AVX512", "channels_last"), ("DEFAULT", "channels_last")):
+        monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda c=capability: c)
+        assert refinement_memory_order("auto", True, "cpu") == want
+        assert refinement_memory_order("auto", False, "cpu") == "contiguous"
+        for named in ("channels_last", "contiguous"):
+            assert refinement_memory_order(named, capability == "AVX2", "cpu") == named
+        det = DopeDetector(input="rgb", dims=dims)
+        assert det.refinement_order == want
+        conv = next(m for m in det.model.hidden[1].modules() if isinstance(m, torch.nn.Conv2d))
+        fmt = torch.channels_last if want == "channels_last" else torch.contiguous_format
+        assert conv.weight.is_contiguous(memory_format=fmt)
+    assert refinement_memory_order("auto", True, "cuda") == "channels_last"
+    with pytest.raises(ValueError, match="refinement_order must be one of auto, channels_last, contiguous"):
+        refinement_memory_order("nhwc")
+    with pytest.raises(ValueError, match="refinement_order"):
+        DopeDetector(input="rgb", dims=dims, refinement_order="nhwc")
+    assert DetectorConfig(refinement_order="contiguous").dope_kwargs()["refinement_order"] == "contiguous"
+    with pytest.raises(Exception, match="refinement_order"):
+        DetectorConfig(refinement_order="nhwc")

@@ -1,10 +1,12 @@
 """The DOPE network: output shapes per stage count, layer counts, weights round trip, and its folded
 form for inference (the same maps)."""
+import copy
+
 import pytest
 import torch
 
 from stack.dope.net import (N_AFFINITY, N_BELIEF, DopeNet, DopeNetConfig, FoldedDopeNet, load_weights, read_weights,
-                            save_weights)
+                            save_weights, set_memory_order)
 
 
 @pytest.fixture(scope="module")
@@ -166,3 +168,30 @@ def test_the_folded_network_follows_the_source_layers_it_folds():
         other = FoldedDopeNet(net)(x)[1][0]
     assert torch.equal(folded(x)[1][0], before)
     assert not torch.allclose(other, before)
+
+
+@pytest.mark.parametrize("folded", [False, True])
+@pytest.mark.parametrize("channels_last, refinement_channels_last", [(True, False), (False, True), (True, True)])
+def test_each_memory_order_gives_the_same_maps(folded, channels_last, refinement_channels_last):
+    """The features and first stage in one memory order, the refinement stages in another: the trained
+    network's maps at every stage count, and the refinement stages' weights in the order asked for."""
+    torch.manual_seed(4)
+    net = _randomised(DopeNet(DopeNetConfig(width=0.125, stages=3)).eval())
+    model = copy.deepcopy(net)
+    model = set_memory_order(FoldedDopeNet(model) if folded else model, channels_last, refinement_channels_last)
+    first = torch.channels_last if channels_last else torch.contiguous_format
+    refine = torch.channels_last if refinement_channels_last else torch.contiguous_format
+    assert model.features[0].weight.is_contiguous(memory_format=first)
+    later = [m for m in (model.hidden[1] if folded else model.stages[1]).modules() if isinstance(m, torch.nn.Conv2d)]
+    assert later and all(m.weight.is_contiguous(memory_format=refine) for m in later)
+    assert model.refinement_format == (None if first == refine else refine)
+    x = torch.randn(2, 3, 40, 48)
+    with torch.no_grad():
+        for stages in (1, 2, 3):
+            want = net(x, stages)
+            got = model(x.contiguous(memory_format=first), stages)
+            assert len(got) == stages
+            for (bw, aw), (bg, ag) in zip(want, got):
+                scale = max(bw.abs().max().item(), aw.abs().max().item())
+                assert (bg - bw).abs().max().item() < 1e-5 * scale
+                assert (ag - aw).abs().max().item() < 1e-5 * scale
