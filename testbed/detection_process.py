@@ -112,6 +112,7 @@ class BuiltDetector:
     weights_path: Path | None
     thresholds_path: Path | None
     precision: str | None
+    refinement_order: str | None = None  # the memory order the network's refinement stages ran in
 
     @staticmethod
     def json_of(detector) -> dict:
@@ -121,14 +122,16 @@ class BuiltDetector:
 
         return {"name": detector_name(detector), "weights_path": path(getattr(detector, "weights_path", None)),
                 "thresholds_path": path(getattr(detector, "thresholds_path", None)),
-                "precision": getattr(detector, "precision", None)}
+                "precision": getattr(detector, "precision", None),
+                "refinement_order": getattr(detector, "refinement_order", None)}
 
     @staticmethod
     def from_json(d: dict) -> "BuiltDetector":
         def path(p):
             return None if p is None else Path(p)
 
-        return BuiltDetector(str(d["name"]), path(d["weights_path"]), path(d["thresholds_path"]), d["precision"])
+        return BuiltDetector(str(d["name"]), path(d["weights_path"]), path(d["thresholds_path"]), d["precision"],
+                             d.get("refinement_order"))
 
 
 def detector_name(detector) -> str:

@@ -422,6 +422,7 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
             "detector_processes": 0 if ahead is None or isinstance(ahead, DetectionAhead) else 1 + ahead.helper,
             "detector": "none" if ran is None else detector_name(ran),
             "network_precision": getattr(ran, "precision", None),
+            "network_refinement_order": getattr(ran, "refinement_order", None),
             "odometry_class": detector_name(odom), "odometry_only": odometry_only,
             "time_split_s": {"odometry": pipe.timing["odometry"], "odometry_reading": read_s,
                              "dope": dlog.seconds, "image_reading": ahead.read_seconds if ahead else 0.0,

@@ -217,9 +217,11 @@ class FoldedDopeNet(nn.Module):
         maps = self.out[0](h)
         outs = [(maps[:, :self.n_belief], maps[:, self.n_belief:])]
         ones = None
-        if n > 1 and self.refinement_format is not None:
-            feats, h = _in_order(feats, self.refinement_format), _in_order(h, self.refinement_format)
+        fmt = self.refinement_format
+        if n > 1 and fmt is not None:
+            feats = _in_order(feats, fmt)
         for i in range(1, n):
+            h = _in_order(h, fmt)  # the previous stage's last layer is a 1x1 convolution, in the first order
             key = (i, feats.shape[-2], feats.shape[-1], feats.dtype, feats.device, self.refinement_format)
             bias = self._bias_maps.get(key)
             if bias is None:  # the same for every image of a size: computed once
@@ -238,9 +240,12 @@ def set_memory_order(model: DopeNet | FoldedDopeNet, channels_last: bool, refine
     """Put ``model``'s weights in the memory order its convolutions run fastest in, in place.
 
     ``channels_last``: the features and the first stage (3x3 convolutions) in channels-last order, else
-    the plain (contiguous) one; ``refinement_channels_last``: the same for the refinement stages (7x7
-    convolutions), whose input is converted to their order in the forward pass. The maps are the same in
-    either order to the last float bits. Returns ``model``.
+    the plain (contiguous) one; ``refinement_channels_last``: the same for the refinement stages' 7x7
+    convolutions, whose input is converted to their order in the forward pass. The stages' 1x1
+    convolutions stay in the first order: in the plain order PyTorch runs a single image's 1x1
+    convolution as its own matrix product on one thread and through oneDNN on more, which differ in the
+    last bits, so the maps would depend on the thread count; channels-last, they do not. The maps are the
+    same in either order to the last float bits. Returns ``model``.
     """
     first = torch.channels_last if channels_last else torch.contiguous_format
     refine = torch.channels_last if refinement_channels_last else torch.contiguous_format
@@ -252,6 +257,9 @@ def set_memory_order(model: DopeNet | FoldedDopeNet, channels_last: bool, refine
         later = list(model.stages[1:])
     for m in later:
         m.to(memory_format=refine)
+        for conv in m.modules():  # 1x1 convolutions stay in the first order (see above)
+            if isinstance(conv, nn.Conv2d) and conv.kernel_size == (1, 1):
+                conv.to(memory_format=first)
     model.refinement_format = None if refine == first else refine
     return model
 

@@ -408,7 +408,7 @@ def test_replay_command_builds_its_network_in_the_detector_process_only(live, tm
     in a thread (``DOPESLAM_DETECTOR_PROCESS=0``) one, here. The same bytes either way. A weights
     file that is not one ends in one line and exit status 2 either way, nothing written."""
     from stack import dope_fpr
-    from stack.dope_fpr import default_weights, file_sha256
+    from stack.dope_fpr import default_weights, file_sha256, refinement_memory_order
     from testbed.cli import main
 
     built = []
@@ -429,6 +429,7 @@ def test_replay_command_builds_its_network_in_the_detector_process_only(live, tm
         reports[mode] = report = json.loads((out / "report.json").read_text())
         assert report["detector_processes"] == int(mode)
         assert report["detector"] == "stack.dope_fpr:DopeDetector" and report["network_precision"] == "fp32"
+        assert report["network_refinement_order"] == refinement_memory_order()  # what ran: auto, resolved here
         assert report["provenance"]["weights_sha256"] == file_sha256(default_weights("rgb"))
         assert report["provenance"]["fpr_thresholds_sha256"] is not None
     for name in ("labels.json", "estimate_tum.txt"):

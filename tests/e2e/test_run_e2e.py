@@ -5,6 +5,7 @@ import json
 
 import pytest
 
+from stack.dope_fpr import refinement_memory_order
 from stack.object_store import ObjectStore
 from testbed.cli import main
 
@@ -66,6 +67,7 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys,
         assert (out / name).stat().st_size > 0
     assert "precision 100 %" in capsys.readouterr().out
     assert report["detector"] == "stack.dope_fpr:DopeDetector" and report["network_precision"] == "fp32"
+    assert report["network_refinement_order"] == refinement_memory_order()  # what ran: auto, resolved here
     assert report["odometry_process"] is False  # every image detected: KISS-ICP stays in this process
     assert report["detector_processes"] == 2  # ... and two detector processes take the images in turn
     # the detector ran in a process ahead of the pipeline; in the message loop it gives the same bytes
