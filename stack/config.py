@@ -99,7 +99,7 @@ class DetectorConfig(BaseModel):
                                 "on a CPU; the maps differ in the last float bits)")
     refinement_order: Literal["auto", "channels_last", "contiguous"] = Field(
         "auto", description="the memory order of the refinement stages' 7x7 convolutions: auto is contiguous on "
-        "an AVX2 CPU (about 10 % less network time there), else as channels_last; the maps differ in the last float bits")
+        "an AVX2 CPU (about 8 % less network time there), else as channels_last; the maps differ in the last float bits")
     fold_stages: bool = Field(True, description="run each refinement stage's first convolution on the previous "
                               "stage's last hidden layer instead of its maps (the same maps to the last float bits, "
                               "about a fifth fewer multiply-adds)")

@@ -105,7 +105,7 @@ def effective_precision(precision: str = DEFAULT_PRECISION, device="cpu") -> str
 def refinement_memory_order(order: str = "auto", channels_last: bool = True, device="cpu") -> str:
     """The memory order the network's refinement stages run in, for ``order`` ("auto", "channels_last" or
     "contiguous"). ``"auto"``: the plain (contiguous) order on a CPU whose widest vector unit PyTorch uses
-    is AVX2, where oneDNN's 7x7 convolutions of 32 channels run faster in it (the network takes about 10 %
+    is AVX2, where oneDNN's 7x7 convolutions of 32 channels run faster in it (the network takes about 8 %
     less time: docs/speed.md, "The refinement stages in the plain memory order"); elsewhere the order of
     ``channels_last``."""
     if order not in REFINEMENT_ORDERS:
