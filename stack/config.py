@@ -99,7 +99,8 @@ class DetectorConfig(BaseModel):
                                 "on a CPU; the maps differ in the last float bits)")
     refinement_order: Literal["auto", "channels_last", "contiguous"] = Field(
         "auto", description="the memory order of the refinement stages' 7x7 convolutions: auto is contiguous on "
-        "an AVX2 CPU (about 8 % less network time there), else as channels_last; the maps differ in the last float bits")
+        "an AVX2 CPU (about 8 % less network time there), else as channels_last; the maps differ in the last "
+        "float bits")
     fold_stages: bool = Field(True, description="run each refinement stage's first convolution on the previous "
                               "stage's last hidden layer instead of its maps (the same maps to the last float bits, "
                               "about a fifth fewer multiply-adds)")
@@ -132,7 +133,8 @@ class DetectorConfig(BaseModel):
                 "depth_refine": self.depth_refine, "depth_check": self.depth_check,
                 "colour_check": self.colour_check, "colour": self.colour_model, "colour_margin": self.colour_margin,
                 "min_colour_brightness": self.min_colour_brightness, "window_min_pixels": self.window_min_pixels,
-                "channels_last": self.channels_last, "refinement_order": self.refinement_order, "fold_stages": self.fold_stages, "precision": self.precision,
+                "channels_last": self.channels_last, "refinement_order": self.refinement_order,
+                "fold_stages": self.fold_stages, "precision": self.precision,
                 "shape_check": self.shape_check, "shape_min_residual_m": self.shape_min_residual_m,
                 "shape_ratio": self.shape_ratio}
 

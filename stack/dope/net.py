@@ -128,9 +128,7 @@ class DopeNet(nn.Module):
         feats = self.features(x)
         outs = []
         prev = None
-        feats_r = feats
-        if n > 1 and self.refinement_format is not None:
-            feats_r = feats.contiguous(memory_format=self.refinement_format)
+        feats_r = _in_order(feats, self.refinement_format) if n > 1 else feats
         for i in range(n):
             inp = feats if i == 0 else torch.cat([feats_r, _in_order(prev, self.refinement_format)], dim=1)
             prev = self.stages[i](inp)
@@ -222,7 +220,7 @@ class FoldedDopeNet(nn.Module):
             feats = _in_order(feats, fmt)
         for i in range(1, n):
             h = _in_order(h, fmt)  # the previous stage's last layer is a 1x1 convolution, in the first order
-            key = (i, feats.shape[-2], feats.shape[-1], feats.dtype, feats.device, self.refinement_format)
+            key = (i, feats.shape[-2], feats.shape[-1], feats.dtype, feats.device, fmt)
             bias = self._bias_maps.get(key)
             if bias is None:  # the same for every image of a size: computed once
                 if ones is None:
