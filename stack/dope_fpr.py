@@ -147,10 +147,26 @@ def file_sha256(path) -> str:
 
 # --- peaks, association, PnP --------------------------------------------------------------------
 
+def max_3x3(maps: np.ndarray) -> np.ndarray:
+    """The maximum over each element's 3x3 neighbourhood in each 2D map of ``maps`` (..., h, w), nothing
+    beyond the edges: ``scipy.ndimage.maximum_filter`` with size (1, ..., 3, 3), mode constant and cval
+    -inf, the same values, as six elementwise maxima (a row pass, then a column pass) in a fifth of its
+    time on the network's maps. Maps with NaN go through SciPy, whose NaN handling this does not copy."""
+    if maps.ndim < 2 or maps.dtype.kind != "f" or np.isnan(maps).any():
+        size = (1,) * (maps.ndim - 2) + (3, 3)
+        return maximum_filter(maps, size=size, mode="constant", cval=-np.inf)
+    h, w = maps.shape[-2:]
+    pad = np.full(maps.shape[:-2] + (h + 2, w + 2), -np.inf, dtype=maps.dtype)
+    pad[..., 1:-1, 1:-1] = maps
+    rows = np.maximum(pad[..., :-2], pad[..., 1:-1])
+    np.maximum(rows, pad[..., 2:], out=rows)  # (..., h + 2, w): each row's 3-wide maxima
+    out = np.maximum(rows[..., :-2, :], rows[..., 1:-1, :])
+    return np.maximum(out, rows[..., 2:, :], out=out)
+
+
 def local_maxima(maps: np.ndarray, threshold: float) -> np.ndarray:
     """Where each 2D map of ``maps`` (..., h, w) has a local maximum (3x3) above ``threshold``: bool, same shape."""
-    size = (1,) * (maps.ndim - 2) + (3, 3)
-    return (maps == maximum_filter(maps, size=size, mode="constant", cval=-np.inf)) & (maps > threshold)
+    return (maps == max_3x3(maps)) & (maps > threshold)
 
 
 def find_peaks(belief: np.ndarray, threshold: float, smooth_sigma: float = 0.0) -> list[tuple[int, int, float]]:
@@ -255,9 +271,9 @@ def associate(belief: np.ndarray, affinity: np.ndarray, peak_threshold: float = 
     for k in range(8):
         for r, c, v, x, y in peaks[k]:
             vec = affinity[2 * k:2 * k + 2, r, c].astype(np.float64)
-            nv = np.linalg.norm(vec)
+            nv = math.sqrt(vec.dot(vec))  # np.linalg.norm's own arithmetic, without its checks
             d = cpos - np.array([x, y])
-            dist = np.linalg.norm(d, axis=1)
+            dist = np.sqrt(np.add.reduce(d * d, axis=1))  # np.linalg.norm(d, axis=1), the same way
             if nv < 1e-3:
                 # no direction (corner on top of the centroid): accept the nearest centre if very close
                 best = int(np.argmin(dist))
@@ -265,12 +281,12 @@ def associate(belief: np.ndarray, affinity: np.ndarray, peak_threshold: float = 
                     continue
             else:
                 cosang = (d @ (vec / nv)) / np.maximum(dist, 1e-6)
-                ang = np.arccos(np.clip(cosang, -1, 1))
+                ang = np.arccos(np.minimum(np.maximum(cosang, -1.0), 1.0))
                 ang[dist < 0.5] = 0.0
-                ok = np.nonzero(ang <= angle_threshold)[0]
+                ok = (ang <= angle_threshold).nonzero()[0]
                 if len(ok) == 0:
                     continue
-                best = int(ok[np.lexsort((dist[ok], np.round(ang[ok], 2)))[0]])
+                best = int(ok[np.lexsort((dist[ok], ang[ok].round(2)))[0]])
             pts, sc = objs[best]
             if v > sc[k]:
                 pts[k] = (x, y)

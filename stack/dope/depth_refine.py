@@ -33,7 +33,10 @@ def _ray_box_depth(T_cam_obj: np.ndarray, dims, K: np.ndarray, us: np.ndarray, v
     """Optical-axis depth (z) of the first hit of the rays through pixels (us, vs) on the cuboid; NaN = miss."""
     R, t = T_cam_obj[:3, :3], T_cam_obj[:3, 3]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    d_cam = np.stack([(us - cx) / fx, (vs - cy) / fy, np.ones_like(us, dtype=float)], axis=1)  # z = 1 per unit
+    d_cam = np.empty((len(us), 3))  # z = 1 per unit
+    np.divide(us - cx, fx, out=d_cam[:, 0])
+    np.divide(vs - cy, fy, out=d_cam[:, 1])
+    d_cam[:, 2] = 1.0
     o = -R.T @ t  # camera centre in the object frame
     d = d_cam @ R  # directions in the object frame (R^T d for each row)
     half = np.asarray(dims, dtype=float) / 2.0
@@ -41,10 +44,15 @@ def _ray_box_depth(T_cam_obj: np.ndarray, dims, K: np.ndarray, us: np.ndarray, v
         inv = 1.0 / d
         t1 = (-half - o) * inv
         t2 = (half - o) * inv
-    tmin = np.nanmax(np.minimum(t1, t2), axis=1)
-    tmax = np.nanmin(np.maximum(t1, t2), axis=1)
+    # the slabs' entry and exit, NaN (a ray in a face's plane) left out: what nanmax/nanmin compute,
+    # without their checks (a ray's direction is never zero in all three axes)
+    tmin = np.fmax.reduce(np.minimum(t1, t2), axis=1)
+    tmax = np.fmin.reduce(np.maximum(t1, t2), axis=1)
     hit = (tmax >= tmin) & (tmax > 0)
     return np.where(hit, np.maximum(tmin, 0.0), np.nan)  # parameter along d_cam, whose z is 1 -> depth
+
+
+_CORNER_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
 
 
 def silhouette_pixels(T_cam_obj: np.ndarray, dims, K: np.ndarray, shape: tuple[int, int],
@@ -53,8 +61,7 @@ def silhouette_pixels(T_cam_obj: np.ndarray, dims, K: np.ndarray, shape: tuple[i
     about its centre (so silhouette edges, where depth is mixed, are left out)."""
     h, w = shape
     half = np.asarray(dims, dtype=float) / 2.0
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
-    pts = (signs * half) @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    pts = (_CORNER_SIGNS * half) @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
     if np.any(pts[:, 2] <= 0.05):
         return np.empty(0), np.empty(0), np.empty(0)
     uv = (pts[:, :2] / pts[:, 2:3]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
@@ -62,8 +69,9 @@ def silhouette_pixels(T_cam_obj: np.ndarray, dims, K: np.ndarray, shape: tuple[i
     u1, v1 = np.clip(np.ceil(uv.max(axis=0)).astype(int), 0, [w - 1, h - 1])
     if u1 <= u0 or v1 <= v0:
         return np.empty(0), np.empty(0), np.empty(0)
-    vv, uu = np.mgrid[v0:v1 + 1:step, u0:u1 + 1:step]
-    us, vs = uu.ravel().astype(float), vv.ravel().astype(float)
+    cols = np.arange(u0, u1 + 1, step, dtype=float)
+    rows = np.arange(v0, v1 + 1, step, dtype=float)
+    us, vs = np.tile(cols, len(rows)), np.repeat(rows, len(cols))  # row-major, as np.mgrid's
     z = _ray_box_depth(T_cam_obj, np.asarray(dims, dtype=float) * shrink, K, us, vs)
     keep = np.isfinite(z)
     # the expected depth is that of the full-size box along the same rays

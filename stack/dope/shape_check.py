@@ -31,15 +31,15 @@ the detected class fails when its own residual exceeds ``min_residual_m`` and is
 best other class's. A detection whose object is cut by the image border, touched by a nearer surface
 at its edges, or seen through too few pixels gets no verdict (it passes).
 
-Pure numpy and scipy (no simulator imports).
+Pure numpy and OpenCV (no simulator imports).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy import ndimage
 
 THETAS = np.radians(np.arange(0.0, 180.0, 3.0))  # yaw grid: a rectangle repeats every half turn
 CLIP_M = 0.03  # a column's residual counts at most this much (a miss, a stray pixel)
@@ -66,6 +66,32 @@ def _corners_px(T_cam_obj: np.ndarray, dims, K: np.ndarray) -> np.ndarray | None
     if np.any(P[:, 2] <= 0.05):
         return None
     return np.column_stack([K[0, 0] * P[:, 0] / P[:, 2] + K[0, 2], K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]])
+
+
+_SQUARE_3x3 = np.ones((3, 3), np.uint8)
+
+
+def closing_3x3(mask: np.ndarray) -> np.ndarray:
+    """A boolean mask's closing by a 3x3 square, nothing beyond the edges: the pixels of
+    ``scipy.ndimage.binary_closing(mask, np.ones((3, 3)))`` (its dilation, then its erosion, with a
+    border of zeros), by OpenCV's morphology on bytes, about fifty times faster."""
+    u = np.ascontiguousarray(mask, dtype=bool).view(np.uint8)
+    grown = cv2.dilate(u, _SQUARE_3x3, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return cv2.erode(grown, _SQUARE_3x3, borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
+
+
+def column_medians(x: np.ndarray) -> np.ndarray:
+    """Each column's median of its numbers, NaN left out: ``np.nanmedian(x, axis=0)`` for a 2D float
+    array of fewer than 600 rows with a number in every column, the same values in its dtype (NumPy's
+    path for such arrays: the two middle numbers of the sorted column, ``(low + high) / 2``), without
+    its masked-array machinery."""
+    s = np.sort(x, axis=0)  # NaN sorts last
+    n = np.count_nonzero(~np.isnan(x), axis=0)
+    high = n // 2
+    low = np.where(n % 2 == 1, high, high - 1)
+    cols = np.arange(x.shape[1])
+    mid = s[low, cols] + s[high, cols]
+    return np.true_divide(mid, 2.0, out=mid)
 
 
 def _runs(row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -119,7 +145,7 @@ def observe(depth_m: np.ndarray, K, T_cam_obj: np.ndarray, dims, band_m: tuple[f
     ra, rb, rl, rr = max(0, int(cv) - r), min(H, int(cv) + r + 1), max(0, int(cu) - r), min(W, int(cu) + r + 1)
     roi = depth[ra:rb, rl:rr]
     fg = (roi > zf - band_m[0]) & (roi < zf + band_m[1])
-    fg |= ndimage.binary_closing(fg, np.ones((3, 3), bool))  # fill single dropouts
+    fg |= closing_3x3(fg)  # fill single dropouts
     sv, su = min(int(round(cv)) - ra, fg.shape[0] - 1), min(int(round(cu)) - rl, fg.shape[1] - 1)
     s, e = _runs(fg[sv])
     if s.size == 0:
@@ -165,8 +191,8 @@ def observe(depth_m: np.ndarray, K, T_cam_obj: np.ndarray, dims, band_m: tuple[f
     if ok.sum() < min_cols:
         return None
     with np.errstate(all="ignore"):
-        z_cols = np.nanmedian(zs[:, ok], axis=0)
-        mad = np.nanmedian(np.abs(zs[:, ok] - z_cols), axis=0)
+        z_cols = column_medians(zs[:, ok])
+        mad = column_medians(np.abs(zs[:, ok] - z_cols))
     # a median of n samples: 1.25 sigma / sqrt(n); sigma from the median absolute deviation
     noise = float(np.sqrt(np.mean((1.25 * 1.4826 * mad) ** 2 / cnt[ok])))
     return ShapeObservation(zf, top + ra, (int(band[0, 0]) + ra, int(band[-1, 0]) + ra),

@@ -7,7 +7,7 @@ import pytest
 
 from stack.config import DetectorConfig
 from stack.dope.depth_refine import _ray_box_depth
-from stack.dope.shape_check import footprint_residuals, observe, shape_verdict
+from stack.dope.shape_check import closing_3x3, column_medians, footprint_residuals, observe, shape_verdict
 from stack.dope_fpr import DopeDetector
 from stack.messages import CameraFrame, CameraInfo, Detection
 
@@ -127,3 +127,30 @@ def test_config_keys_reach_the_detector():
     assert det.shape_check and det.shape_min_residual_m == 0.02 and det.shape_ratio == 3.0
     assert not DopeDetector(dims=DIMS, **DetectorConfig(input="depth", shape_check=False).dope_kwargs()).shape_check
     assert not DopeDetector(dims=DIMS, **DetectorConfig(input="rgb").dope_kwargs()).shape_check  # depth input only
+
+
+def test_the_closing_is_scipys_binary_closing():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(4)
+    for _ in range(500):
+        h, w = rng.integers(1, 40, 2)
+        mask = rng.random((h, w)) < rng.uniform(0.05, 0.95)
+        want = ndimage.binary_closing(mask, np.ones((3, 3), bool))  # a border of zeros: edges erode
+        got = closing_3x3(mask)
+        assert got.dtype == bool and np.array_equal(got, want)
+    assert not closing_3x3(np.ones((5, 5), bool))[0].any()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_column_medians_are_numpys_nanmedian(dtype):
+    rng = np.random.default_rng(5)
+    for i in range(2000):
+        rows, cols = rng.integers(1, 40), rng.integers(1, 10)
+        x = rng.normal(1.5, 0.01, (rows, cols)).astype(dtype)
+        if i % 4 == 0:
+            x = np.round(x, 2)  # ties
+        x[rng.random((rows, cols)) < rng.uniform(0, 0.7)] = np.nan
+        x[rng.integers(0, rows, cols), np.arange(cols)] = 1.5 + i * 1e-4  # a number in every column
+        got, want = column_medians(x), np.nanmedian(x, axis=0)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
