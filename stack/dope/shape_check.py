@@ -223,15 +223,24 @@ def _placement_rms(obs: ShapeObservation, su: np.ndarray, a: np.ndarray, b: np.n
             C = np.stack([r1 + sl * Cz, Cz], axis=1)
         # depth along each column's ray (X = s Z) to the first face it meets, in the footprint's axes
         o1, o2 = -(C * e1).sum(axis=1)[:, None], -(C * e2).sum(axis=1)[:, None]
-        d1 = su[None, :] * e1[:, 0, None] + e1[:, 1, None]  # (n, N)
-        d2 = su[None, :] * e2[:, 0, None] + e2[:, 1, None]
-        t1a, t1b = (-a / 2 - o1) / d1, (a / 2 - o1) / d1
-        t2a, t2b = (-b / 2 - o2) / d2, (b / 2 - o2) / d2
-    tmin = np.maximum(np.minimum(t1a, t1b), np.minimum(t2a, t2b))
-    tmax = np.minimum(np.maximum(t1a, t1b), np.maximum(t2a, t2b))
-    hit = (tmax >= tmin) & (tmin > 0)
-    res = np.clip(np.where(hit, obs.z_cols[None, :] - np.where(hit, tmin, 0.0), clip_m), -clip_m, clip_m)
-    rms = np.sqrt(np.mean(res ** 2, axis=1))
+        # the (n, N) arrays below are each written in place once made: the same arithmetic, fewer of them
+        d1 = su[None, :] * e1[:, 0, None]
+        d1 += e1[:, 1, None]
+        d2 = su[None, :] * e2[:, 0, None]
+        d2 += e2[:, 1, None]
+        t1a, t1b = np.divide(-a / 2 - o1, d1, out=d1.copy()), np.divide(a / 2 - o1, d1, out=d1)
+        t2a, t2b = np.divide(-b / 2 - o2, d2, out=d2.copy()), np.divide(b / 2 - o2, d2, out=d2)
+        tmin = np.minimum(t1a, t1b)
+        tmax = np.maximum(t1a, t1b, out=t1b)
+        np.maximum(tmin, np.minimum(t2a, t2b), out=tmin)  # the later of the two slabs' entries
+        np.minimum(tmax, np.maximum(t2a, t2b, out=t2b), out=tmax)  # the earlier of their exits
+        hit = tmax >= tmin
+        hit &= tmin > 0
+        # the depth residual where a face is hit, clip_m where none is; clipped to +-clip_m
+        res = np.subtract(obs.z_cols[None, :], tmin, out=tmin)
+    res[~hit] = clip_m
+    np.clip(res, -clip_m, clip_m, out=res)
+    rms = np.sqrt(np.mean(np.multiply(res, res, out=res), axis=1))
     rms[~(C[:, 1] > 0.05) | ~np.isfinite(rms)] = math.inf
     return rms
 
