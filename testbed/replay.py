@@ -200,7 +200,7 @@ class DetectionAhead:
 
 
 def detection_process(bag_path, topics: BagTopics, input_mode: str, kwargs: dict | None, dope_every: int,
-                      keyframes):
+                      keyframes, colour: bool = True):
     """Replay's detector side, ahead of the pipeline, in a child process of its own
     (:class:`testbed.replay_detection.DetectionReaderProcess`; its ``camera(info)`` still to be
     called) for the DOPE detector of ``kwargs`` (:func:`testbed.run.detector_kwargs`; the child builds
@@ -210,7 +210,8 @@ def detection_process(bag_path, topics: BagTopics, input_mode: str, kwargs: dict
 
     Where the detector runs on every image (no keyframe gate, ``dope_every`` 1) it is the longest
     path, and a second process detects every other image (``DOPESLAM_DETECTOR_PROCESS`` ``1`` or
-    ``2`` says how many; docs/speed.md)."""
+    ``2`` says how many; docs/speed.md). ``colour``: False where nothing reads the colour images' pixels
+    (depth input, no loop closer, no live view): the child reads them for their stamps only."""
     from testbed.settings import detection_process_wanted, detector_processes_setting
 
     if kwargs is None or not detection_process_wanted():
@@ -223,7 +224,7 @@ def detection_process(bag_path, topics: BagTopics, input_mode: str, kwargs: dict
         processes = 2 if dope_every <= 1 and keyframe_gate(keyframes) is None else 1
     threads = torch_threads() or (1 if processes == 2 else REPLAY_DETECTOR_THREADS.get(input_mode))
     return DetectionReaderProcess(bag_path, topics, input_mode, kwargs, None, dope_every, keyframes, threads=threads,
-                                  helper=processes == 2)
+                                  helper=processes == 2, colour=colour)
 
 
 # torch threads of replay's one detector process unless DOPESLAM_TORCH_THREADS says: one for colour
@@ -249,14 +250,16 @@ def _with_true_poses(images, bag: BagReader):
 
 
 def open_bag(path, topics: BagTopics, input_mode: str, need_camera: bool = True,
-             ground_truth: bool = True) -> BagReader:
+             ground_truth: bool = True, colour_pixels: bool = True) -> BagReader:
     """The bag on a reader of its own; ``ground_truth`` False: a reader for the detector side only,
-    which leaves the ground truth (scored by the pipeline's reader) unread."""
+    which leaves the ground truth (scored by the pipeline's reader) unread; ``colour_pixels`` False:
+    the colour images are read for their stamps only (``BagReader``)."""
     extra = {"base_frame": topics.base_frame} if topics.base_frame else {}
     bag = BagReader(path, lidar_topic=topics.lidar, rgb_topic=topics.rgb, depth_topic=topics.depth,
                     camera_info_topic=topics.camera_info, require_camera=need_camera,
                     T_base_lidar=topics.T_base_lidar, T_base_camera=topics.T_base_camera,
-                    max_bad_messages=topics.max_bad_messages, ground_truth=ground_truth, **extra).open()
+                    max_bad_messages=topics.max_bad_messages, ground_truth=ground_truth,
+                    colour_pixels=colour_pixels, **extra).open()
     if need_camera:
         have = bag.rgb_topic if input_mode == "rgb" else bag.depth_topic
         if have is None:
@@ -309,7 +312,11 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     # this process opens it (and builds none)
     dope = made_from(detector) if detector is not None else \
         detector_kwargs(input_mode, stages, fpr, weights, detector_config)
-    ahead = detection_process(bag_path, topics, input_mode, dope, dope_every, keyframes) \
+    # DOPE on depth reads no colour pixels; the loop closer and live views do
+    from testbed.progress import views_active
+
+    colour = dope is None or input_mode == "rgb" or loop_closure or views_active()
+    ahead = detection_process(bag_path, topics, input_mode, dope, dope_every, keyframes, colour) \
         if parallel and not odometry_only else None
     try:
         bag = open_bag(bag_path, topics, input_mode, need_camera=not odometry_only)

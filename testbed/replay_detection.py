@@ -83,10 +83,12 @@ class DetectionReaderProcess(ChildOwner):
     ``read_seconds`` (the child's time reading and decoding). ``helper``: the child starts a second
     detector process (:class:`testbed.detection_process.DetectionProcess`) that detects every other
     detected image while the child detects the next (:func:`testbed.replay.detected_images`). Once
-    the child has replied ready (at the first image): ``built``, the :class:`BuiltDetector` it runs."""
+    the child has replied ready (at the first image): ``built``, the :class:`BuiltDetector` it runs.
+    ``colour`` False: the child reads the colour images for their stamps only (frames without ``rgb``)."""
 
     def __init__(self, bag_path, topics, input_mode: str, kwargs: dict, info: CameraInfo | None,
-                 dope_every: int = 1, keyframes=None, threads: int | None = 1, slots: int = 8, helper: bool = False):
+                 dope_every: int = 1, keyframes=None, threads: int | None = 1, slots: int = 8, helper: bool = False,
+                 colour: bool = True):
         self._shm, self._shape, self._slots = None, None, int(slots)
         self.helper = bool(helper)
         self._bag = str(bag_path)
@@ -96,7 +98,7 @@ class DetectionReaderProcess(ChildOwner):
                                              "max_interval_s": keyframes.max_interval_s}
         self._send({"bag": self._bag, "topics": _topics_json(topics), "input": input_mode,
                     "kwargs": encode_value(kwargs), "threads": threads, "every": int(dope_every), "keyframes": ks,
-                    "helper": self.helper})
+                    "helper": self.helper, "colour": bool(colour)})
         self.gate = None
         self.reader = None
         self.built: BuiltDetector | None = None
@@ -188,7 +190,8 @@ def _child_main() -> None:
     try:
         setup = json.loads(requests.readline())
         kwargs = decode_value(setup["kwargs"])
-        reader = open_bag(setup["bag"], _topics_from_json(setup["topics"]), setup["input"], ground_truth=False)
+        reader = open_bag(setup["bag"], _topics_from_json(setup["topics"]), setup["input"], ground_truth=False,
+                          colour_pixels=setup.get("colour", True))
         if setup.get("helper") and reader.camera_info is not None:  # started first: it builds its network meanwhile
             helper = DetectionProcess(kwargs, reader.camera_info, setup["threads"], quiet=True)  # warned below
         detector = build_detector(kwargs, setup["threads"])

@@ -305,6 +305,9 @@ class BagReader:
     chunks, ``never`` raises instead, ``always`` walks without trying the index.
     ``ground_truth``: False leaves the ground-truth trajectory unread (``groundtruth`` stays None), for
     a reader that only needs the sensors: reading it passes over every chunk of a simulator's bag.
+    ``colour_pixels``: False reads each colour image for its stamp only (the frames are paired and
+    stamped as they are with it) and leaves its pixels undecoded and unchecked: every ``CameraFrame``'s
+    ``rgb`` is None. For a reader whose consumers use only depth.
     """
 
     def __init__(self, path: Path | str, lidar_topic: str | None = None, rgb_topic: str | None = None,
@@ -312,9 +315,11 @@ class BagReader:
                  odom_topic: str | None = None, *, base_frame: str = T.BASE,
                  T_base_lidar: np.ndarray | None = None, T_base_camera: np.ndarray | None = None,
                  require_camera: bool = True, pair_tolerance: float = 0.02, salvage: Salvage = "auto",
-                 max_bad_messages: int = 10, max_bad_fraction: float = 0.01, ground_truth: bool = True):
+                 max_bad_messages: int = 10, max_bad_fraction: float = 0.01, ground_truth: bool = True,
+                 colour_pixels: bool = True):
         self.path = Path(path)
         self.read_ground_truth = bool(ground_truth)
+        self.colour_pixels = bool(colour_pixels)
         self.max_bad_messages = int(max_bad_messages)
         self.max_bad_fraction = float(max_bad_fraction)
         self.bad_messages: dict[str, dict] = {}  # topic -> count, first stamps, first reason (skipped)
@@ -433,7 +438,7 @@ class BagReader:
                     out.push(odom.stamp, odom)
                 elif kind == "rgb":
                     stamp = self._check_stamp(topic, self._stamp(msg, t_ns), now)
-                    for item in pairer.add_rgb(stamp, self._rgb(msg)):
+                    for item in pairer.add_rgb(stamp, self._rgb(msg) if self.colour_pixels else None):
                         out.push(item[0], self._camera_frame(*item))
                 else:
                     stamp = self._check_stamp(topic, self._stamp(msg, t_ns), now)

@@ -402,6 +402,31 @@ def test_replay_detection_process_gives_the_thread_s_results(live, tmp_path, mon
             assert 0 < da["keyframe_held_images"] < 81
 
 
+def test_replay_with_depth_input_reads_no_colour_pixels_and_gives_the_thread_s_results(live, tmp_path, monkeypatch):
+    """With depth input nothing reads the colour images' pixels, so the detector process reads them for
+    their stamps only; the thread (which decodes them) finds the same detections and map."""
+    import testbed.replay
+    from testbed.run import make_detector
+
+    seen = []  # per mode: whether each image the pipeline got had colour pixels
+    real = testbed.replay.DopeSlam.on_image
+    monkeypatch.setattr(testbed.replay.DopeSlam, "on_image",
+                        lambda self, frame, *a: seen[-1].append(frame.rgb is not None) or real(self, frame, *a))
+    reports, outs = {}, {}
+    for mode in ("1", "0"):
+        monkeypatch.setenv("DOPESLAM_DETECTOR_PROCESS", mode)
+        outs[mode] = tmp_path / f"depth{mode}"
+        seen.append([])
+        reports[mode] = replay_bag(live["bag"], outs[mode], detector=make_detector("depth", 2, True),
+                                   input_mode="depth")
+    assert seen[0] and not any(seen[0]) and seen[1] and all(seen[1])  # the process read no colour pixels
+    assert reports["1"]["detector_process"] and not reports["0"]["detector_process"]
+    for name in ("labels.json", "estimate_tum.txt"):
+        assert (outs["1"] / name).read_bytes() == (outs["0"] / name).read_bytes(), name
+    d1, d0 = (dict(reports[m]["detection"], fps=None) for m in ("1", "0"))
+    assert d1 == d0 and d1["frames"] > 0
+
+
 def test_replay_command_builds_its_network_in_the_detector_process_only(live, tmp_path, monkeypatch, capsys):
     """``dopeslam replay`` builds the DOPE network only where it runs: in the detector process, none in
     the command's own process, which still names the detector, its precision and the weights' hash;

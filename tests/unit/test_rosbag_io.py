@@ -142,6 +142,25 @@ def test_a_reader_for_the_sensors_only_leaves_the_ground_truth_unread(tmp_path):
         np.testing.assert_array_equal(a.rgb, b.rgb)
 
 
+def test_a_reader_for_depth_only_stamps_and_pairs_the_frames_as_one_that_decodes_colour(tmp_path):
+    """Replay with depth input reads the colour images for their stamps only: the same frames, depth
+    images and pairing, with no colour pixels (a broken colour image is then not noticed either)."""
+    path = tmp_path / "run.bag"
+    record(path, "ros1", "mcap", episode(seed=3))
+    with BagReader(path) as full, BagReader(path, colour_pixels=False) as depth_only:
+        want = list(full.frames())
+        got = list(depth_only.frames())
+        stats = (full.pairing_stats, depth_only.pairing_stats)
+    frames = [(a, b) for a, b in zip(want, got) if isinstance(a, CameraFrame)]
+    assert len(want) == len(got) and len(frames) == 15 and stats[0] == stats[1]
+    for a, b in zip(want, got):
+        assert type(a) is type(b) and a.stamp == b.stamp
+    for a, b in frames:
+        assert a.rgb is not None and b.rgb is None
+        np.testing.assert_array_equal(a.depth_m, b.depth_m)
+        np.testing.assert_array_equal(a.T_world_camera, b.T_world_camera)
+
+
 @pytest.mark.parametrize("fmt,storage,name", FORMATS)
 def test_rosbags_own_reader_reads_every_message(tmp_path, fmt, storage, name):
     path = tmp_path / name
