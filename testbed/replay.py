@@ -312,10 +312,11 @@ def replay_bag(bag_path, out_dir="out/replay", detector=None, input_mode: str = 
     # this process opens it (and builds none)
     dope = made_from(detector) if detector is not None else \
         detector_kwargs(input_mode, stages, fpr, weights, detector_config)
-    # DOPE on depth reads no colour pixels; the loop closer and live views do
+    # DOPE on depth reads no colour pixels (the detector's own input, whatever --input says); the loop
+    # closer and live views do
     from testbed.progress import views_active
 
-    colour = dope is None or input_mode == "rgb" or loop_closure or views_active()
+    colour = dope is None or dope.get("input", "rgb") != "depth" or loop_closure or views_active()
     ahead = detection_process(bag_path, topics, input_mode, dope, dope_every, keyframes, colour) \
         if parallel and not odometry_only else None
     try:
