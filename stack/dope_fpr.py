@@ -152,7 +152,7 @@ def max_3x3(maps: np.ndarray) -> np.ndarray:
     beyond the edges: ``scipy.ndimage.maximum_filter`` with size (1, ..., 3, 3), mode constant and cval
     -inf, the same values, as six elementwise maxima (a row pass, then a column pass) in a fifth of its
     time on the network's maps. Maps with NaN go through SciPy, whose NaN handling this does not copy."""
-    if maps.ndim < 2 or maps.dtype.kind != "f" or np.isnan(maps).any():
+    if maps.dtype.kind != "f" or np.isnan(maps).any():
         size = (1,) * (maps.ndim - 2) + (3, 3)
         return maximum_filter(maps, size=size, mode="constant", cval=-np.inf)
     h, w = maps.shape[-2:]

@@ -52,7 +52,8 @@ def _ray_box_depth(T_cam_obj: np.ndarray, dims, K: np.ndarray, us: np.ndarray, v
     return np.where(hit, np.maximum(tmin, 0.0), np.nan)  # parameter along d_cam, whose z is 1 -> depth
 
 
-_CORNER_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+BOX_CORNER_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+"""(8, 3): a box's corners about its centre in units of its half sizes (any order: silhouettes and extents)."""
 
 
 def silhouette_pixels(T_cam_obj: np.ndarray, dims, K: np.ndarray, shape: tuple[int, int],
@@ -61,7 +62,7 @@ def silhouette_pixels(T_cam_obj: np.ndarray, dims, K: np.ndarray, shape: tuple[i
     about its centre (so silhouette edges, where depth is mixed, are left out)."""
     h, w = shape
     half = np.asarray(dims, dtype=float) / 2.0
-    pts = (_CORNER_SIGNS * half) @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    pts = (BOX_CORNER_SIGNS * half) @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
     if np.any(pts[:, 2] <= 0.05):
         return np.empty(0), np.empty(0), np.empty(0)
     uv = (pts[:, :2] / pts[:, 2:3]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]

@@ -41,6 +41,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from stack.dope.depth_refine import BOX_CORNER_SIGNS
+
 THETAS = np.radians(np.arange(0.0, 180.0, 3.0))  # yaw grid: a rectangle repeats every half turn
 CLIP_M = 0.03  # a column's residual counts at most this much (a miss, a stray pixel)
 
@@ -61,8 +63,7 @@ class ShapeObservation:
 
 def _corners_px(T_cam_obj: np.ndarray, dims, K: np.ndarray) -> np.ndarray | None:
     half = np.asarray(dims, dtype=float) / 2.0
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
-    P = (signs * half) @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    P = (BOX_CORNER_SIGNS * half) @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
     if np.any(P[:, 2] <= 0.05):
         return None
     return np.column_stack([K[0, 0] * P[:, 0] / P[:, 2] + K[0, 2], K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]])
@@ -228,8 +229,8 @@ def _placement_rms(obs: ShapeObservation, su: np.ndarray, a: np.ndarray, b: np.n
         d1 += e1[:, 1, None]
         d2 = su[None, :] * e2[:, 0, None]
         d2 += e2[:, 1, None]
-        t1a, t1b = np.divide(-a / 2 - o1, d1, out=d1.copy()), np.divide(a / 2 - o1, d1, out=d1)
-        t2a, t2b = np.divide(-b / 2 - o2, d2, out=d2.copy()), np.divide(b / 2 - o2, d2, out=d2)
+        t1a, t1b = (-a / 2 - o1) / d1, np.divide(a / 2 - o1, d1, out=d1)
+        t2a, t2b = (-b / 2 - o2) / d2, np.divide(b / 2 - o2, d2, out=d2)
         tmin = np.minimum(t1a, t1b)
         tmax = np.maximum(t1a, t1b, out=t1b)
         np.maximum(tmin, np.minimum(t2a, t2b), out=tmin)  # the later of the two slabs' entries
