@@ -13,6 +13,10 @@
 (``np.array_equal``, NaN equal to NaN), and the parts of report.json that the stack computes
 (detection counts, label errors, trajectory scores), ignoring timings. Run both with one torch
 thread (``DOPESLAM_TORCH_THREADS=1``, set here) so DOPE's sums come out in the same order.
+
+The commands run the code of the tree this file is in, from any working directory: to record an
+older commit, check it out beside this one (``git worktree add OLD COMMIT``) and run
+``python OLD/tests/golden_record.py record DIR`` with this environment's Python.
 """
 from __future__ import annotations
 
@@ -35,10 +39,18 @@ REPORT_KEYS = ["detection", "labels", "labels_summary", "candidates", "odometry"
 TIMING_KEYS = {"fps", "seconds_total", "odometry_hz"}
 
 
+ROOT = Path(__file__).resolve().parents[1]  # the tree whose code is recorded
+if str(ROOT) not in sys.path[:1]:
+    sys.path.insert(0, str(ROOT))  # ahead of an installed copy of another tree
+
+
 def dopeslam(*args: str) -> None:
     cmd = [sys.executable, "-m", "testbed.cli", *args]
     print("+ dopeslam", " ".join(args), flush=True)
-    subprocess.run(cmd, check=True)
+    # from ROOT, with ROOT first on the path: ``-m`` puts the working directory ahead of everything,
+    # and the commands' child processes put their parent's tree first
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(x for x in (str(ROOT), os.environ.get("PYTHONPATH", "")) if x))
+    subprocess.run(cmd, check=True, cwd=ROOT, env=env)
 
 
 def build_cache(folder: Path) -> Path:
@@ -116,7 +128,7 @@ def compare(a: Path, b: Path) -> list[str]:
 
 def main(argv: list[str]) -> int:
     if len(argv) == 2 and argv[0] == "record":
-        record(Path(argv[1]))
+        record(Path(argv[1]).resolve())  # the commands run from this tree's folder
         return 0
     if len(argv) == 3 and argv[0] == "compare":
         diffs = compare(Path(argv[1]), Path(argv[2]))

@@ -1,5 +1,5 @@
-"""stack.transforms.from_xyz_quat and the robot's per-step limits: the same bits as the SciPy and NumPy
-calls they stand in for, on any input."""
+"""stack.transforms.from_xyz_quat, to_xyz_quat and the robot's per-step limits: the same bits as the
+SciPy and NumPy calls they stand in for, on any input."""
 from __future__ import annotations
 
 import math
@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from sim.robot import _clip
-from stack.transforms import from_xyz_quat, make_T
+from stack.transforms import from_xyz_quat, make_T, to_xyz_quat
 
 
 def scipy_T(xyz, quat):
@@ -60,6 +60,66 @@ def test_from_xyz_quat_treats_nan_and_inf_as_scipy_does():
                 from_xyz_quat([0.0, 0.0, 0.0], quat)
         else:
             np.testing.assert_array_equal(from_xyz_quat([0.0, 0.0, 0.0], quat), want)
+
+
+def scipy_xyz_quat(T):
+    return T[:3, 3].copy(), Rotation.from_matrix(T[:3, :3]).as_quat()
+
+
+def assert_same_xyz_quat(T):
+    try:
+        want = scipy_xyz_quat(T)
+    except ValueError as exc:
+        with pytest.raises(ValueError) as ours:
+            to_xyz_quat(T)
+        assert str(ours.value) == str(exc)
+        return
+    got = to_xyz_quat(T)
+    for g, w in zip(got, want):
+        assert g.dtype == w.dtype and g.shape == w.shape
+        assert g.tobytes() == w.tobytes(), T
+
+
+def test_to_xyz_quat_gives_scipys_bits_for_rotations_and_their_products():
+    rng = np.random.default_rng(11)
+    R = Rotation.random(2000, random_state=12).as_matrix()
+    for i in range(2000):
+        T = make_T(R[i], rng.standard_normal(3) * 10)
+        assert_same_xyz_quat(T)
+        # chained transforms, as the map fusion makes them: orthogonal to about 1e-15
+        assert_same_xyz_quat(T @ make_T(R[(7 * i) % 2000], [1.0, -2.0, 0.5]) @ make_T(R[(11 * i) % 2000]))
+    # each branch of the largest-of-diagonal-and-trace choice, and its ties (half turns, the identity)
+    for angle in np.linspace(-7.0, 7.0, 701):
+        for axis in np.eye(3):
+            assert_same_xyz_quat(make_T(Rotation.from_rotvec(axis * angle).as_matrix(), [0.3, 0.0, -1.0]))
+    for d in ([1.0, 1.0, 1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, -1.0, -1.0]):
+        assert_same_xyz_quat(make_T(np.diag(d)))
+
+
+def test_to_xyz_quat_gives_scipys_bits_where_scipy_orthogonalises_first():
+    # SciPy takes a rotation off by more than 1e-12 to its nearest orthogonal matrix first: around
+    # that tolerance both ways must agree, whichever path each input takes
+    rng = np.random.default_rng(13)
+    R = Rotation.random(300, random_state=14).as_matrix()
+    for eps in (1e-15, 1e-14, 3e-14, 1e-13, 3e-13, 1e-12, 1e-9, 1e-3):
+        for i in range(300):
+            assert_same_xyz_quat(make_T(R[i] + rng.standard_normal((3, 3)) * eps, [1.0, 2.0, 3.0]))
+
+
+@pytest.mark.filterwarnings("ignore:invalid value encountered in det")
+@pytest.mark.parametrize("R", [np.diag([1.0, 1.0, -1.0]), np.zeros((3, 3)), np.full((3, 3), np.nan)])
+def test_to_xyz_quat_leaves_reflections_and_nan_to_scipy(R):
+    T = make_T()
+    T[:3, :3] = R
+    assert_same_xyz_quat(T)
+    assert_same_xyz_quat(T.astype(np.float32))
+
+
+def test_to_xyz_quat_returns_new_arrays():
+    T = make_T(Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix(), [1.0, 2.0, 3.0])
+    xyz, quat = to_xyz_quat(T)
+    xyz[0] = 9.0
+    assert T[0, 3] == 1.0 and quat.flags.writeable and quat.shape == (4,)
 
 
 def test_robot_limits_clip_as_numpy_does():
