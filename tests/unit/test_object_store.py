@@ -1,6 +1,7 @@
 """The persistent object store: association, labelling policies, .xlsx/.json files, hand edits."""
 import json
 import math
+import zipfile
 
 import numpy as np
 import openpyxl
@@ -8,8 +9,8 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stack.object_store import (COLUMNS, POLICIES, ObjectStore, ObjectStoreError, Observation, label_of,
-                                read_objects)
+from stack.object_store import (COLUMNS, POLICIES, MapObject, ObjectStore, ObjectStoreError, Observation,
+                                _write_xlsx, label_of, read_objects)
 
 DIMS = {"Mustard": (0.160050, 0.048574, 0.065133), "Cookies": (0.167243, 0.040152, 0.122746),
         "E": (0.100, 0.140, 0.035)}
@@ -157,6 +158,38 @@ def test_xlsx_round_trip_keeps_every_column(tmp_path):
     assert_same_objects(store, loaded, history=False)
     assert list(pd.read_excel(path, sheet_name="objects").columns) == COLUMNS
     assert [p.name for p in tmp_path.iterdir()] == ["labels.xlsx"]  # no temporary file left behind
+
+
+def pandas_xlsx(path, objects):
+    """The store's sheet as pandas' ``to_excel`` writes it (how the store wrote it before)."""
+    table = pd.DataFrame([o.row() for o in objects], columns=COLUMNS)
+    with open(path, "wb") as f, pd.ExcelWriter(f, engine="openpyxl") as writer:
+        table.to_excel(writer, sheet_name="objects", index=False)
+
+
+def workbook_parts(path):
+    """Every part of an .xlsx (a zip) by name, in order, but its creation time (docProps/core.xml)."""
+    with zipfile.ZipFile(path) as z:
+        return [(n, z.read(n)) for n in z.namelist() if n != "docProps/core.xml"]
+
+
+def test_xlsx_holds_what_pandas_would_write(tmp_path):
+    # the store writes its sheet with openpyxl itself: the same parts, byte for byte, as pandas made
+    store = sample_store()
+    objects = list(store)
+    rng = np.random.default_rng(3)
+    for i, score in enumerate([math.nan, math.inf, -math.inf, -0.0, 1e-300, 1e300, 143.5668055480008]):
+        objects.append(MapObject(100 + i, ["Mustard", "Ünïcode", "a b"][i % 3], rng.normal(size=3),
+                                 rng.normal(size=4), np.abs(rng.normal(size=3)), 0.1 * i, 1.3 * i, 7 * i, score,
+                                 bool(i % 2), ["label", "candidate", "retired"][i % 3],
+                                 ["", "1 observations (needs 5)"][i % 2], views=i % 4))
+    objects[-1].xyz = np.array([math.nan, 1.0, math.inf])
+    objects[-2].reason = None  # missing, as pandas writes NaN: an empty string
+    for case in ([], objects[:1], objects):
+        ours, theirs = tmp_path / "ours.xlsx", tmp_path / "theirs.xlsx"
+        _write_xlsx(ours, case)
+        pandas_xlsx(theirs, case)
+        assert workbook_parts(ours) == workbook_parts(theirs)
 
 
 def edit_cells(path, row, **cells):
