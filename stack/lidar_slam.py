@@ -69,7 +69,9 @@ class LidarOdometryConfig(BaseModel):
     initial_threshold_m: float = Field(0.5, gt=0, description="ICP correspondence scale before motion is seen")
     min_motion_m: float = Field(0.02, ge=0, description="model deviations below this do not adapt the threshold")
     max_iterations: int = Field(500, ge=1)
-    convergence: float = Field(1e-4, gt=0)
+    convergence: float = Field(1e-4, gt=0, description="ICP stops when a step moves the pose by less than this "
+                               "(the norm of its 6 numbers, m and rad); looser is faster and may cost ATE "
+                               "(docs/speed.md, 'When ICP stops')")
     threads: int = Field(1, ge=0, description="registration threads; 1 (default) gives the same bytes for a seed "
                          "(more threads reorder float sums: ~1e-16 differences); 0: all cores. KISS-ICP fixes it "
                          "per process, at the first")
