@@ -136,10 +136,12 @@ def time_ns(t: Any) -> int:
 
 
 def quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method).
+    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method), for the poses a bag
+    is written with (ground truth at the physics rate writes thousands).
 
-    The same as ``to_xyz_quat`` up to sign, ~20x faster on one matrix than scipy's
-    ``Rotation.from_matrix``: ground truth at the physics rate writes thousands of poses.
+    The same rotation as ``stack.transforms.to_xyz_quat`` gives, up to sign and the last bits: that
+    one reproduces SciPy's ``Rotation.from_matrix`` bit for bit, this one the bags' own quaternions,
+    so recorded bags keep their bytes.
     """
     m = R
     tr = m[0, 0] + m[1, 1] + m[2, 2]
