@@ -264,6 +264,7 @@ class Episode:
         if self.use_camera and render_worker:  # started first: they build their worlds while this one does
             self._render_workers = [RenderWorker(self.sc, self.camera_info, renderer, segmentation=self.segmentation)
                                     for _ in range(max(1, int(render_worker)))]
+        self.render_processes = len(self._render_workers)  # the camera's, as started
         ss = np.random.SeedSequence(self.seed)
         self.rng_lidar, self.rng_camera, self.rng_odom = (np.random.default_rng(c) for c in ss.spawn(3))
         self.client, self.renderer = new_client(renderer if self.use_camera else "tiny")  # no EGL without a camera

@@ -148,7 +148,7 @@ def made_from(detector) -> dict | None:
         return None
 
 
-def ahead_settings(sequential: bool, detector) -> tuple[bool, bool]:
+def ahead_settings(sequential: bool, detector, images: int | None = None) -> tuple[bool, bool]:
     """Whether ``run_episode`` may run ``detector`` ahead of the pipeline, and its render worker then.
 
     Ahead, three things share the two cores of the reference machine: the simulator with the stack's
@@ -156,28 +156,52 @@ def ahead_settings(sequential: bool, detector) -> tuple[bool, bool]:
     DOPE detector with one torch thread, in a child process of its own (``testbed.detection_process``;
     a thread for other detectors). On two idle cores that took the default episode from 132 s (in the
     loop, torch's two threads, no render worker) to 101 s with the same bytes out (docs/speed.md).
-    The render worker: ``DOPESLAM_RENDER_WORKER`` when set, else on when ahead."""
+    The render worker: ``DOPESLAM_RENDER_WORKER`` when set, else on when ahead and the episode renders
+    at least :data:`RENDER_PROCESS_FROM_IMAGES` images (``images``; None: as many as it likes): a
+    shorter one spends more on the worker's start-up than the worker saves it."""
     from sim.render import render_worker_wanted
 
     ahead = not sequential and not callable(getattr(detector, "bind_episode", None))
-    return ahead, render_worker_wanted(ahead)
+    return ahead, render_worker_wanted(ahead and (images is None or images >= RENDER_PROCESS_FROM_IMAGES))
+
+
+# Helper processes pay for themselves only in episodes long enough. Each costs its start-up (Python,
+# then torch and the network or PyBullet and the world: 3-4 CPU s) and, while it runs, the cores it
+# shares with the others. On two cores (docs/speed.md, "Helper processes for long episodes only"), the
+# render worker saved time from about 150 rendered images on, and a second detector process cost time
+# in every episode of up to 300 detected images; it gains only in the longest, on some machines.
+RENDER_PROCESS_FROM_IMAGES = 150
+SECOND_DETECTOR_FROM_IMAGES = 500
+
+
+def episode_images(duration, rate) -> int | None:
+    """About how many images the camera takes in ``duration`` s at ``rate`` Hz (one at the start); None
+    for values the episode itself will refuse."""
+    try:
+        n = float(duration) * float(rate)
+    except (TypeError, ValueError):
+        return None
+    return int(n) + 1 if math.isfinite(n) and n >= 0 else None
 
 
 DOPE_DETECTOR = "stack.dope_fpr:DopeDetector"
 
 
-def detector_processes_wanted(every: int = 1, keyframes=None) -> int:
+def detector_processes_wanted(every: int = 1, keyframes=None, images: int | None = None) -> int:
     """How many detector processes ``dopeslam run`` starts ahead of the pipeline for its DOPE
     detector: ``DOPESLAM_DETECTOR_PROCESS`` ``1`` or ``2`` when set; else two where every image is
-    detected (the network is then the run's longest path: the two detect the images in turn), one
-    where some go undetected (a keyframe gate, ``every`` over 1). The same bytes either way
-    (docs/speed.md)."""
+    detected (the network is then the run's longest path: the two detect the images in turn) and
+    there are at least :data:`SECOND_DETECTOR_FROM_IMAGES` of them (``images``, the camera's; None: as
+    many as it likes), one where some go undetected (a keyframe gate, ``every`` over 1) or the
+    episode is shorter. The same bytes either way (docs/speed.md)."""
     from testbed.settings import detector_processes_setting
 
     chosen = detector_processes_setting()
     if chosen is not None:
         return chosen
-    return 1 if _CameraDemand.useful(every, keyframes) else 2
+    if _CameraDemand.useful(every, keyframes) or (images is not None and images < SECOND_DETECTOR_FROM_IMAGES):
+        return 1
+    return 2
 
 
 def odometry_process_wanted(odometry, every: int = 1, keyframes=None) -> bool:
@@ -402,8 +426,20 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
 
     scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     # in the loop: with events, and while recording (the bag interleaves the ground truth by the loop)
+    if profile is None:
+        profile = getattr(getattr(config, "run", None), "profile", "full")
+    camera_rate, segmentation = None, True
+    if profile != "full":
+        from testbed.settings import profile_sensors
+
+        needs = bag_writer is not None or callable(getattr(detector, "bind_episode", None)) \
+            or any(e.kind == "walk" for e in scenario.events)
+        camera_rate, segmentation = profile_sensors(profile, scenario.sensors.camera_rate, needs)
+    images = episode_images(scenario.duration if duration is None else duration,
+                            scenario.sensors.camera_rate if camera_rate is None else camera_rate) \
+        if scenario.sensors.camera else 0
     ahead_wanted, render_worker = ahead_settings(sequential or bool(scenario.events) or bag_writer is not None,
-                                                 detector)
+                                                 detector, images)
     in_process = None  # the camera of the detector process, where the DOPE detector runs in one
     if detector is None:
         from testbed.detection_process import build_detector
@@ -417,15 +453,6 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         else:
             detector = build_detector(own_kwargs, torch_threads() or (1 if ahead_wanted else None))
     dims = {c: s.dims for c, s in load_catalog().items()}
-    if profile is None:
-        profile = getattr(getattr(config, "run", None), "profile", "full")
-    camera_rate, segmentation = None, True
-    if profile != "full":
-        from testbed.settings import profile_sensors
-
-        needs = bag_writer is not None or callable(getattr(detector, "bind_episode", None)) \
-            or any(e.kind == "walk" for e in scenario.events)
-        camera_rate, segmentation = profile_sensors(profile, scenario.sensors.camera_rate, needs)
     wall0 = time.perf_counter()
     lidar = getattr(getattr(config, "run", None), "lidar", None)
     closing = contextlib.ExitStack()
@@ -435,7 +462,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
         from testbed.detection_process import DetectionProcess
 
         processes = [DetectionProcess(own_kwargs, in_process, torch_threads() or 1, quiet=i > 0)
-                     for i in range(detector_processes_wanted(dope_every, keyframes))]
+                     for i in range(detector_processes_wanted(dope_every, keyframes, images))]
         for p in processes:
             closing.callback(p.close)
     with closing, Episode(scenario, seed=seed, duration=duration, light=light, camera_rate=camera_rate,
@@ -563,6 +590,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
             "network_precision": getattr(ran, "precision", None),
             "network_refinement_order": getattr(ran, "refinement_order", None), "odometry_class": detector_name(odom),
             "odometry_process": kiss is not None, "detector_processes": len(processes),
+            "render_processes": ep.render_processes,
             "sim_seconds": ep.sim_seconds, "wall_seconds": wall,
             "real_time_factor": ep.sim_seconds / wall, "time_split_s": timing,
             "odometry": odo, "wheel_odometry": wheel_score,

@@ -16,10 +16,11 @@ reads its two itself):
                             reads and detects the images beside the odometry, in a thread instead
                             of a child process (read by detection_process_wanted); 1: one child
                             process, 2: two, images in turn (unset: two where the detector runs on
-                            every image, else one; read by detector_processes_setting, for replay and
-                            for testbed.run)
+                            every image, in testbed.run only from 500 images on, else one; read by
+                            detector_processes_setting, for replay and for testbed.run)
     DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode;
-                            unset: on where testbed.run runs the detector ahead, else off)
+                            unset: on where testbed.run runs the detector ahead of an episode of at
+                            least 150 images, else off)
     DOPESLAM_TORCH_THREADS  torch threads of the detector (read by stack.config.torch_threads;
                             unset: 1 where testbed.run runs the detector ahead, and in replay's
                             detector process for colour input or in each of two, else torch's)

@@ -40,6 +40,9 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys,
         real_init(self, *a, **kw)
 
     monkeypatch.setattr(dope_fpr.DopeDetector, "__init__", counting_init)
+    # the helper processes of a long episode (this short one would start neither; test_run_ahead.py)
+    monkeypatch.setenv("DOPESLAM_DETECTOR_PROCESS", "2")
+    monkeypatch.setenv("DOPESLAM_RENDER_WORKER", "1")
     out = tmp_path / "run"
     assert main(["run", str(short_scenario), "--out", str(out), "--seed", "3"]) == 0
     assert built == []
@@ -70,7 +73,10 @@ def test_run_labels_the_objects_it_drives_past(short_scenario, tmp_path, capsys,
     assert report["network_refinement_order"] == refinement_memory_order()  # what ran: auto, resolved here
     assert report["odometry_process"] is False  # every image detected: KISS-ICP stays in this process
     assert report["detector_processes"] == 2  # ... and two detector processes take the images in turn
+    assert report["render_processes"] == 1  # ... while a third renders the camera
     # the detector ran in a process ahead of the pipeline; in the message loop it gives the same bytes
+    monkeypatch.delenv("DOPESLAM_DETECTOR_PROCESS")
+    monkeypatch.delenv("DOPESLAM_RENDER_WORKER")
     seq = tmp_path / "sequential"
     assert main(["run", str(short_scenario), "--out", str(seq), "--seed", "3", "--sequential"]) == 0
     assert built == [1]
@@ -98,6 +104,7 @@ def test_keyframe_gate_runs_the_detector_on_fewer_images_with_the_same_bytes_ahe
     reports = [json.loads((o / "report.json").read_text()) for o in outs]
     assert [r["odometry_process"] for r in reports] == [True, False]
     assert [r["detector_processes"] for r in reports] == [1, 0]  # some images undetected: one is enough
+    assert [r["render_processes"] for r in reports] == [0, 0]  # 131 images: not worth a render process
     assert reports[0]["odometry"] == {**reports[1]["odometry"], "odometry_hz": reports[0]["odometry"]["odometry_hz"]}
     assert reports[0]["time_split_s"]["odometry"] > 0
     d = reports[0]["detection"]

@@ -56,21 +56,36 @@ class BoundDetector:
         return []
 
 
-@pytest.mark.parametrize("env, sequential, detector, expected", [
-    (None, False, None, (True, True)),  # ahead: the camera renders in a second process
-    (None, True, None, (False, False)),  # in the loop: rendered in the loop too
-    (None, False, BoundDetector(), (False, False)),  # a detector bound to the episode runs in the loop
-    ("0", False, None, (True, False)),  # the variable, when set, wins
-    ("1", True, None, (False, True)),
+@pytest.mark.parametrize("env, sequential, detector, images, expected", [
+    (None, False, None, None, (True, True)),  # ahead: the camera renders in a second process
+    (None, False, None, 601, (True, True)),
+    (None, False, None, 150, (True, True)),
+    (None, False, None, 149, (True, False)),  # ... unless the episode is too short to pay its start-up
+    (None, False, None, 0, (True, False)),
+    (None, True, None, 601, (False, False)),  # in the loop: rendered in the loop too
+    (None, False, BoundDetector(), 601, (False, False)),  # a detector bound to the episode runs in the loop
+    ("0", False, None, 601, (True, False)),  # the variable, when set, wins
+    ("1", True, None, 601, (False, True)),
+    ("1", False, None, 10, (True, True)),
 ])
-def test_ahead_settings(monkeypatch, env, sequential, detector, expected):
+def test_ahead_settings(monkeypatch, env, sequential, detector, images, expected):
     from testbed.run import ahead_settings
 
     if env is None:
         monkeypatch.delenv("DOPESLAM_RENDER_WORKER", raising=False)
     else:
         monkeypatch.setenv("DOPESLAM_RENDER_WORKER", env)
-    assert ahead_settings(sequential, detector) == expected
+    assert ahead_settings(sequential, detector, images) == expected
+
+
+@pytest.mark.parametrize("duration, rate, expected", [(60.0, 10.0, 601), (13.0, 10.0, 131), (0.0, 10.0, 1),
+                                                      (14.9, 10.0, 150), (1.0, 30.0, 31), (-1.0, 10.0, None),
+                                                      (float("nan"), 10.0, None), (float("inf"), 10.0, None),
+                                                      (10.0, "fast", None), (None, 10.0, None)])
+def test_episode_images(duration, rate, expected):
+    from testbed.run import episode_images
+
+    assert episode_images(duration, rate) == expected
 
 
 @pytest.mark.parametrize("value, expected", [(None, True), ("1", True), ("0", False), (" 0 ", False)])
@@ -91,7 +106,8 @@ def test_detector_processes_setting(value, expected):
 @pytest.mark.parametrize("value", [None, "1", "2", "0", "yes"])
 def test_live_run_detector_processes(monkeypatch, value):
     """Unset, ``dopeslam run`` starts two detector processes where every image is detected (the
-    network is the longest path) and one where some go undetected; ``1`` or ``2`` says how many."""
+    network is the longest path) in an episode of 500 images or more, and one where some go
+    undetected or the episode is shorter; ``1`` or ``2`` says how many."""
     from stack.keyframes import KeyframeSettings
     from testbed.run import detector_processes_wanted
 
@@ -105,6 +121,12 @@ def test_live_run_detector_processes(monkeypatch, value):
     assert detector_processes_wanted(1, None) == (forced or 2)
     assert detector_processes_wanted(2, None) == (forced or 1)
     assert detector_processes_wanted(1, gate) == (forced or 1)
+    # two only where the episode is long enough to pay the second one's start-up
+    assert detector_processes_wanted(1, None, 601) == (forced or 2)
+    assert detector_processes_wanted(1, None, 500) == (forced or 2)
+    assert detector_processes_wanted(1, None, 499) == (forced or 1)
+    assert detector_processes_wanted(1, None, 0) == (forced or 1)
+    assert detector_processes_wanted(2, None, 601) == (forced or 1)
 
 
 @pytest.mark.parametrize("value, expected", [(None, None), ("", None), ("yes", None), ("1", True), (" 1 ", True),
