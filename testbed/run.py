@@ -157,21 +157,20 @@ def ahead_settings(sequential: bool, detector, images: int | None = None) -> tup
     a thread for other detectors). On two idle cores that took the default episode from 132 s (in the
     loop, torch's two threads, no render worker) to 101 s with the same bytes out (docs/speed.md).
     The render worker: ``DOPESLAM_RENDER_WORKER`` when set, else on when ahead and the episode renders
-    at least :data:`RENDER_PROCESS_FROM_IMAGES` images (``images``; None: as many as it likes): a
+    at least :data:`HELPERS_FROM_IMAGES` images (``images``; None: as many as it likes): a
     shorter one spends more on the worker's start-up than the worker saves it."""
     from sim.render import render_worker_wanted
 
     ahead = not sequential and not callable(getattr(detector, "bind_episode", None))
-    return ahead, render_worker_wanted(ahead and (images is None or images >= RENDER_PROCESS_FROM_IMAGES))
+    return ahead, render_worker_wanted(ahead and (images is None or images >= HELPERS_FROM_IMAGES))
 
 
 # Helper processes pay for themselves only in episodes long enough. Each costs its start-up (Python,
 # then torch and the network or PyBullet and the world: 3-4 CPU s) and, while it runs, the cores it
-# shares with the others. On two cores (docs/speed.md, "Helper processes for long episodes only"), the
-# render worker saved time from about 150 rendered images on, and a second detector process cost time
-# in every episode of up to 300 detected images; it gains only in the longest, on some machines.
-RENDER_PROCESS_FROM_IMAGES = 150
-SECOND_DETECTOR_FROM_IMAGES = 500
+# shares with the others. On two cores (docs/speed.md, "Helper processes for long episodes only"),
+# episodes of up to 100 images ran in less time and CPU with neither a render process nor a second
+# detector process; from about 150 on the two gain or break even.
+HELPERS_FROM_IMAGES = 150
 
 
 def episode_images(duration, rate) -> int | None:
@@ -191,7 +190,7 @@ def detector_processes_wanted(every: int = 1, keyframes=None, images: int | None
     """How many detector processes ``dopeslam run`` starts ahead of the pipeline for its DOPE
     detector: ``DOPESLAM_DETECTOR_PROCESS`` ``1`` or ``2`` when set; else two where every image is
     detected (the network is then the run's longest path: the two detect the images in turn) and
-    there are at least :data:`SECOND_DETECTOR_FROM_IMAGES` of them (``images``, the camera's; None: as
+    there are at least :data:`HELPERS_FROM_IMAGES` of them (``images``, the camera's; None: as
     many as it likes), one where some go undetected (a keyframe gate, ``every`` over 1) or the
     episode is shorter. The same bytes either way (docs/speed.md)."""
     from testbed.settings import detector_processes_setting
@@ -199,7 +198,7 @@ def detector_processes_wanted(every: int = 1, keyframes=None, images: int | None
     chosen = detector_processes_setting()
     if chosen is not None:
         return chosen
-    if _CameraDemand.useful(every, keyframes) or (images is not None and images < SECOND_DETECTOR_FROM_IMAGES):
+    if _CameraDemand.useful(every, keyframes) or (images is not None and images < HELPERS_FROM_IMAGES):
         return 1
     return 2
 

@@ -16,7 +16,7 @@ reads its two itself):
                             reads and detects the images beside the odometry, in a thread instead
                             of a child process (read by detection_process_wanted); 1: one child
                             process, 2: two, images in turn (unset: two where the detector runs on
-                            every image, in testbed.run only from 500 images on, else one; read by
+                            every image, in testbed.run only from 150 images on, else one; read by
                             detector_processes_setting, for replay and for testbed.run)
     DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode;
                             unset: on where testbed.run runs the detector ahead of an episode of at

@@ -106,7 +106,7 @@ def test_detector_processes_setting(value, expected):
 @pytest.mark.parametrize("value", [None, "1", "2", "0", "yes"])
 def test_live_run_detector_processes(monkeypatch, value):
     """Unset, ``dopeslam run`` starts two detector processes where every image is detected (the
-    network is the longest path) in an episode of 500 images or more, and one where some go
+    network is the longest path) in an episode of 150 images or more, and one where some go
     undetected or the episode is shorter; ``1`` or ``2`` says how many."""
     from stack.keyframes import KeyframeSettings
     from testbed.run import detector_processes_wanted
@@ -123,8 +123,8 @@ def test_live_run_detector_processes(monkeypatch, value):
     assert detector_processes_wanted(1, gate) == (forced or 1)
     # two only where the episode is long enough to pay the second one's start-up
     assert detector_processes_wanted(1, None, 601) == (forced or 2)
-    assert detector_processes_wanted(1, None, 500) == (forced or 2)
-    assert detector_processes_wanted(1, None, 499) == (forced or 1)
+    assert detector_processes_wanted(1, None, 150) == (forced or 2)
+    assert detector_processes_wanted(1, None, 149) == (forced or 1)
     assert detector_processes_wanted(1, None, 0) == (forced or 1)
     assert detector_processes_wanted(2, None, 601) == (forced or 1)
 
