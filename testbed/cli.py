@@ -161,12 +161,9 @@ def c_stdout_to_stderr():
     try:
         yield
     finally:
-        try:
-            sys.stdout.flush()
-        finally:
-            os.dup2(saved, 1)
-            sys.stdout.close()
-            sys.stdout = old
+        ours, sys.stdout = sys.stdout, old
+        os.dup2(saved, 1)
+        ours.close()  # flushed first; closed even where the flush fails (a reader gone: BrokenPipeError)
 
 
 # commands whose SCENARIO, --seed, --duration and --light are an episode's: checked before any work starts
@@ -248,6 +245,13 @@ def main(argv: list[str] | None = None) -> int:
         return rc
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # stdout's reader has gone (``| head``): the outputs are written, the rest of
+        # the printout goes nowhere, and the status is a shell's for a writer that SIGPIPE stopped
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's last flush, silent
+        except (AttributeError, OSError, ValueError):
+            pass
+        return 141
     except DopeSlamError as exc:  # what the user gave is wrong: one line (file, field, expected), no traceback
         print(f"dopeslam {args.command}: {exc}", file=sys.stderr)
         return 2

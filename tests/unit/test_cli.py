@@ -125,6 +125,18 @@ def test_loop_closure_without_gtsam_is_one_line(monkeypatch):
     assert len(lines) == 1 and "pip install 'dopeslam-testbed[loops]'" in lines[0], r.stderr
 
 
+def test_a_reader_that_has_gone_ends_the_command_quietly():
+    """``dopeslam scenes | head -0``: stdout's reader has gone before the command prints. No
+    traceback, nothing on stderr, and the status a shell gives a writer that SIGPIPE stopped."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "testbed.cli", "scenes"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, cwd=ROOT, env=env)
+    proc.stdout.close()  # before the child has started: its first print finds no reader
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141, err
+    assert err == "", err
+
+
 def test_simulator_banner_goes_to_stderr():
     """What every command runs inside: PyBullet's banner (C-level stdout) goes to stderr, Python's
     prints still to stdout."""
