@@ -210,8 +210,10 @@ def finished_report(cell_dir: Path) -> dict | None:
 
 
 # cells side by side (--jobs over 1, a Ray task per core) already fill the cores: each keeps KISS-ICP
-# in its own process and runs one detector process (docs/speed.md), unless the user set them
-SIDE_BY_SIDE_DEFAULTS = {"DOPESLAM_ODOMETRY_PROCESS": "0", "DOPESLAM_DETECTOR_PROCESS": "1"}
+# in its own process, runs one detector process and renders its camera in its own process
+# (docs/speed.md), unless the user set them
+SIDE_BY_SIDE_DEFAULTS = {"DOPESLAM_ODOMETRY_PROCESS": "0", "DOPESLAM_DETECTOR_PROCESS": "1",
+                         "DOPESLAM_RENDER_WORKER": "0"}
 
 
 def _side_by_side_env() -> dict:

@@ -20,7 +20,7 @@ reads its two itself):
                             detector_processes_setting, for replay and for testbed.run)
     DOPESLAM_RENDER_WORKER  1: render camera images in a second process (read by sim.episode.Episode;
                             unset: on where testbed.run runs the detector ahead of an episode of at
-                            least 150 images, else off)
+                            least 150 images, else off; testbed.matrix sets 0 for cells side by side)
     DOPESLAM_TORCH_THREADS  torch threads of the detector (read by stack.config.torch_threads;
                             unset: 1 where testbed.run runs the detector ahead, and in replay's
                             detector process for colour input or in each of two, else torch's)

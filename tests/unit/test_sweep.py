@@ -86,17 +86,20 @@ def test_perception_cache_cells_keyed_by_what_the_cache_depends_on(tmp_path):
 
 
 def test_cell_processes_side_by_side_keep_kiss_icp_in_their_own_process(monkeypatch):
-    """Cells side by side already fill the cores: each keeps KISS-ICP in its own process and runs one
-    detector process, unless the user set DOPESLAM_ODOMETRY_PROCESS or DOPESLAM_DETECTOR_PROCESS; one
-    cell at a time decides as ``dopeslam run`` does."""
+    """Cells side by side already fill the cores: each keeps KISS-ICP in its own process, runs one
+    detector process and renders in its own process, unless the user set DOPESLAM_ODOMETRY_PROCESS,
+    DOPESLAM_DETECTOR_PROCESS or DOPESLAM_RENDER_WORKER; one cell at a time decides as ``dopeslam
+    run`` does."""
     from testbed.matrix import _worker_env
 
-    monkeypatch.delenv("DOPESLAM_ODOMETRY_PROCESS", raising=False)
-    monkeypatch.delenv("DOPESLAM_DETECTOR_PROCESS", raising=False)
-    assert "DOPESLAM_ODOMETRY_PROCESS" not in _worker_env(1)
-    assert "DOPESLAM_DETECTOR_PROCESS" not in _worker_env(1)
+    for name in ("DOPESLAM_ODOMETRY_PROCESS", "DOPESLAM_DETECTOR_PROCESS", "DOPESLAM_RENDER_WORKER"):
+        monkeypatch.delenv(name, raising=False)
+        assert name not in _worker_env(1)
     assert _worker_env(2)["DOPESLAM_ODOMETRY_PROCESS"] == "0"
     assert _worker_env(2)["DOPESLAM_DETECTOR_PROCESS"] == "1"  # one detector process per cell
+    assert _worker_env(2)["DOPESLAM_RENDER_WORKER"] == "0"  # and no render process
+    monkeypatch.setenv("DOPESLAM_RENDER_WORKER", "1")
+    assert _worker_env(2)["DOPESLAM_RENDER_WORKER"] == "1"
     assert _worker_env(2)["DOPESLAM_TORCH_THREADS"] == _worker_env(1)["DOPESLAM_TORCH_THREADS"]
     monkeypatch.setenv("DOPESLAM_ODOMETRY_PROCESS", "1")
     assert _worker_env(2)["DOPESLAM_ODOMETRY_PROCESS"] == "1"
