@@ -400,7 +400,8 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     ``sequential``: run the detector in the message loop; by default it runs in a thread a few images
     ahead of the pipeline, with the camera rendered in a second process and the DOPE detector made
     only in a child process with one torch thread, started before the world is built (two such
-    processes, images in turn, where every image is detected: :func:`detector_processes_wanted`)
+    processes, images in turn, where every image is detected: :func:`detector_processes_wanted`; in an
+    episode of under :data:`HELPERS_FROM_IMAGES` images, one, and no render process)
     (:func:`ahead_settings`, ``DOPESLAM_DETECTOR_PROCESS``; the same results, less wall time), except in
     scenarios with events and with a detector bound to the episode, whose truth must be read at the
     image's own time, and while recording (``bag_writer``). Ahead, where not every image is detected
@@ -424,7 +425,6 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     from sim.scenario import Scenario, load_scenario
 
     scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
-    # in the loop: with events, and while recording (the bag interleaves the ground truth by the loop)
     if profile is None:
         profile = getattr(getattr(config, "run", None), "profile", "full")
     camera_rate, segmentation = None, True
@@ -437,6 +437,7 @@ def run_episode(scenario=None, out_dir="out/run", seed=None, light=None, input_m
     images = episode_images(scenario.duration if duration is None else duration,
                             scenario.sensors.camera_rate if camera_rate is None else camera_rate) \
         if scenario.sensors.camera else 0
+    # in the loop: with events, and while recording (the bag interleaves the ground truth by the loop)
     ahead_wanted, render_worker = ahead_settings(sequential or bool(scenario.events) or bag_writer is not None,
                                                  detector, images)
     in_process = None  # the camera of the detector process, where the DOPE detector runs in one
