@@ -47,10 +47,11 @@ if str(ROOT) not in sys.path[:1]:
 def dopeslam(*args: str) -> None:
     cmd = [sys.executable, "-m", "testbed.cli", *args]
     print("+ dopeslam", " ".join(args), flush=True)
-    # from ROOT, with ROOT first on the path: ``-m`` puts the working directory ahead of everything,
-    # and the commands' child processes put their parent's tree first
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(x for x in (str(ROOT), os.environ.get("PYTHONPATH", "")) if x))
-    subprocess.run(cmd, check=True, cwd=ROOT, env=env)
+    # from ROOT, with ROOT first on the path (``package_env``, as the commands give their own child
+    # processes): ``-m`` puts the working directory ahead of everything
+    from sim.child import package_env  # ROOT's own, found first (above)
+
+    subprocess.run(cmd, check=True, cwd=ROOT, env=package_env())
 
 
 def build_cache(folder: Path) -> Path:
